@@ -1,0 +1,280 @@
+"""Dataset storage: compressed numpy shards plus a JSON index.
+
+Why this format: it needs nothing beyond numpy (training also runs on machines without open3d or
+trimesh), zip-deflate shrinks the sparse, bit-packed voxel grids well, and every shard loads on its own,
+so a training loop streams a dataset shard by shard without holding it in memory. Shards are written
+atomically (temporary file, then rename) and named by their number, so a build that was interrupted
+resumes by skipping shards already on disk, and workers in separate processes each write their own.
+
+Layout of a dataset directory::
+
+    index.json                  meta (grid size, voxel size, family, split, ...), shard list, per-sample records
+    shards/00000.npz            voxel grids (bit packed), boxes, other same-shape arrays, records of the shard
+    shards/00000.images.npz     depth/mask crops and other variable-shape arrays (not read by training)
+
+A sample is a dict: numpy arrays (grids, box, images) and plain JSON values (identity, flags, poses).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+GRID_KEYS: tuple[str, ...] = ("known_occupied", "known_free", "occupancy")
+TRAINING_KEYS: tuple[str, ...] = (*GRID_KEYS, "box")
+INDEX_FILE = "index.json"
+SHARD_DIR = "shards"
+
+
+class DatasetError(ValueError):
+    """A dataset directory is missing, incomplete or inconsistent."""
+
+
+def _shard_paths(root: Path, shard_id: int) -> tuple[Path, Path]:
+    base = root / SHARD_DIR / f"{shard_id:05d}"
+    return base.with_suffix(".npz"), Path(f"{base}.images.npz")
+
+
+def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as handle:
+        np.savez_compressed(handle, **arrays)
+    os.replace(tmp, path)
+
+
+def shard_exists(root: str | Path, shard_id: int) -> bool:
+    """True when shard ``shard_id`` is completely written (used to resume a build)."""
+    grids, images = _shard_paths(Path(root), shard_id)
+    return grids.exists() and images.exists()
+
+
+def write_shard(root: str | Path, shard_id: int, samples: Sequence[dict[str, Any]]) -> None:
+    """Writes one shard atomically.
+
+    Boolean (N, N, N) arrays in GRID_KEYS are bit packed. Other arrays whose shape is the same for every
+    sample are stacked into the grid file; arrays whose shape varies (image crops) go to the images file
+    as one flat array plus shapes. Non-array values are stored as JSON records.
+    """
+    if not samples:
+        raise DatasetError(f"shard {shard_id} has no samples")
+    root = Path(root)
+    (root / SHARD_DIR).mkdir(parents=True, exist_ok=True)
+    grids_path, images_path = _shard_paths(root, shard_id)
+    array_keys = sorted(k for k, v in samples[0].items() if isinstance(v, np.ndarray))
+    records = [{k: v for k, v in s.items() if not isinstance(v, np.ndarray)} for s in samples]
+    main: dict[str, np.ndarray] = {"records": np.array(json.dumps(records))}
+    side: dict[str, np.ndarray] = {}
+    for key in array_keys:
+        values = [s[key] for s in samples]
+        if any(not isinstance(v, np.ndarray) for v in values):
+            raise DatasetError(f"key {key!r} is an array in some samples of shard {shard_id} but not in others")
+        if key in GRID_KEYS:
+            shape = values[0].shape
+            if any(v.shape != shape or v.dtype != bool for v in values):
+                raise DatasetError(f"grid {key!r} must be bool of one shape within a shard")
+            main[key] = np.stack([np.packbits(v.reshape(-1)) for v in values])
+            main[f"{key}__shape"] = np.array(shape, dtype=np.int64)
+        elif all(v.shape == values[0].shape for v in values) and values[0].size <= 4096:
+            main[key] = np.stack(values)
+        else:
+            side[key] = np.concatenate([v.reshape(-1) for v in values])
+            side[f"{key}__shapes"] = np.array([v.shape for v in values], dtype=np.int64)
+    # The images file is written first, so a grid file on disk always has its images beside it.
+    _atomic_savez(images_path, side)
+    _atomic_savez(grids_path, main)
+
+
+def finalize(root: str | Path, meta: dict[str, Any]) -> int:
+    """Scans the shards on disk and writes index.json; returns the number of samples.
+
+    Shards must be numbered 0..K-1 without gaps, so an incomplete build is refused rather than indexed.
+    """
+    root = Path(root)
+    shard_files = sorted((root / SHARD_DIR).glob("[0-9][0-9][0-9][0-9][0-9].npz"))
+    shards, records = [], []
+    for expected, path in enumerate(shard_files):
+        shard_id = int(path.stem)
+        if shard_id != expected:
+            raise DatasetError(f"shard {expected:05d} is missing in {root / SHARD_DIR}; finish the build first")
+        with np.load(path) as data:
+            shard_records = json.loads(str(data["records"]))
+        shards.append({"id": shard_id, "first": len(records), "count": len(shard_records)})
+        records.extend(shard_records)
+    if not records:
+        raise DatasetError(f"no shards found in {root / SHARD_DIR}")
+    index = {"meta": meta, "num_samples": len(records), "shards": shards, "records": records}
+    tmp = root / f".{INDEX_FILE}.tmp"
+    tmp.write_text(json.dumps(index))
+    os.replace(tmp, root / INDEX_FILE)
+    return len(records)
+
+
+class DatasetWriter:
+    """Sequential writer: buffers samples and writes a shard every ``shard_size`` samples."""
+
+    def __init__(self, root: str | Path, meta: dict[str, Any], shard_size: int = 256) -> None:
+        if shard_size < 1:
+            raise DatasetError(f"shard_size must be positive, got {shard_size}")
+        self.root = Path(root)
+        self.meta = dict(meta)
+        self.shard_size = shard_size
+        self._buffer: list[dict[str, Any]] = []
+        self._next_shard = 0
+
+    def add(self, sample: dict[str, Any]) -> None:
+        """Adds one sample (arrays and JSON-serialisable values)."""
+        self._buffer.append(sample)
+        if len(self._buffer) >= self.shard_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._buffer:
+            write_shard(self.root, self._next_shard, self._buffer)
+            self._next_shard += 1
+            self._buffer = []
+
+    def close(self) -> int:
+        """Writes the last shard and the index; returns the number of samples."""
+        self._flush()
+        return finalize(self.root, self.meta)
+
+
+class DatasetReader:
+    """Reads a dataset directory written by :class:`DatasetWriter` or :func:`write_shard` + :func:`finalize`."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        index_path = self.root / INDEX_FILE
+        if not index_path.exists():
+            raise DatasetError(f"{self.root} is not a dataset: {INDEX_FILE} is missing (build it with "
+                               "`pssnet dataset build`)")
+        try:
+            index = json.loads(index_path.read_text())
+        except json.JSONDecodeError as error:
+            raise DatasetError(f"{index_path} is corrupt: {error}") from error
+        self.meta: dict[str, Any] = index["meta"]
+        self.records: list[dict[str, Any]] = index["records"]
+        self._shards: list[dict[str, int]] = index["shards"]
+        self._cache: tuple[tuple[int, bool], dict[str, np.ndarray]] | None = None
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    @property
+    def grid_size(self) -> int:
+        return int(self.meta["grid_size"])
+
+    @property
+    def voxel_size(self) -> float:
+        return float(self.meta["voxel_size"])
+
+    @property
+    def num_shards(self) -> int:
+        return len(self._shards)
+
+    def load_shard(self, shard: int, keys: Sequence[str] | None = None,
+                   images: bool = False) -> dict[str, np.ndarray]:
+        """Arrays of one shard, grids unpacked to bool (B, N, N, N); ``keys`` limits what is decoded.
+
+        Variable-shape arrays (with ``images=True``) come back as object arrays of per-sample arrays.
+        """
+        grids_path, images_path = _shard_paths(self.root, self._shards[shard]["id"])
+        out: dict[str, np.ndarray] = {}
+        try:
+            with np.load(grids_path) as data:
+                names = [n for n in data.files if n != "records" and not n.endswith("__shape")]
+                for name in names if keys is None else [k for k in keys if k in names]:
+                    if name in GRID_KEYS:
+                        shape = tuple(data[f"{name}__shape"])
+                        count = int(np.prod(shape))
+                        packed = data[name]
+                        out[name] = np.unpackbits(packed, axis=1, count=count).astype(bool).reshape(
+                            (len(packed), *shape))
+                    else:
+                        out[name] = data[name]
+            if images:
+                with np.load(images_path) as data:
+                    for name in [n for n in data.files if not n.endswith("__shapes")]:
+                        if keys is not None and name not in keys:
+                            continue
+                        shapes = data[f"{name}__shapes"]
+                        flat = data[name]
+                        sizes = np.prod(shapes, axis=1)
+                        parts = np.split(flat, np.cumsum(sizes)[:-1])
+                        column = np.empty(len(parts), dtype=object)
+                        for i, (part, shape) in enumerate(zip(parts, shapes, strict=True)):
+                            column[i] = part.reshape(shape)
+                        out[name] = column
+        except (OSError, ValueError, KeyError) as error:
+            raise DatasetError(f"shard {grids_path} is unreadable: {error}") from error
+        if keys is not None and (missing := [k for k in keys if k not in out]):
+            raise DatasetError(f"shard {grids_path} has no arrays named {missing}")
+        return out
+
+    def get(self, index: int, images: bool = True) -> dict[str, Any]:
+        """One whole sample: its arrays (grids unpacked, image crops) and its record."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"sample {index} out of range for a dataset of {len(self)}")
+        shard = next(i for i, s in enumerate(self._shards) if s["first"] <= index < s["first"] + s["count"])
+        if self._cache is None or self._cache[0] != (shard, images):
+            self._cache = ((shard, images), self.load_shard(shard, images=images))
+        arrays = self._cache[1]
+        offset = index - self._shards[shard]["first"]
+        sample: dict[str, Any] = dict(self.records[index])
+        sample.update({k: v[offset] for k, v in arrays.items()})
+        return sample
+
+    def iter_batches(self, batch_size: int, shuffle: bool = True, seed: int = 0, drop_last: bool = False,
+                     keys: Sequence[str] | None = TRAINING_KEYS,
+                     indices: Sequence[int] | None = None) -> Iterator[dict[str, np.ndarray]]:
+        """Streams batches of arrays (plus "index", the sample numbers), one shard in memory at a time.
+
+        With ``shuffle``, shard order and sample order within a two-shard window are shuffled by ``seed``:
+        mixing across neighbouring shards without loading the dataset. ``indices`` restricts to a subset.
+        """
+        if batch_size < 1:
+            raise DatasetError(f"batch_size must be positive, got {batch_size}")
+        rng = np.random.default_rng(seed)
+        wanted = None if indices is None else np.zeros(len(self), dtype=bool)
+        if wanted is not None:
+            wanted[np.asarray(indices, dtype=np.int64)] = True
+        order = rng.permutation(self.num_shards) if shuffle else np.arange(self.num_shards)
+        pending: dict[str, list[np.ndarray]] = {}
+        pending_count = 0
+        window: list[dict[str, np.ndarray]] = []
+
+        def emit(parts: list[dict[str, np.ndarray]]) -> Iterator[dict[str, np.ndarray]]:
+            nonlocal pending, pending_count
+            merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+            if shuffle:
+                perm = rng.permutation(len(merged["index"]))
+                merged = {k: v[perm] for k, v in merged.items()}
+            for k, v in merged.items():
+                pending.setdefault(k, []).append(v)
+            pending_count += len(merged["index"])
+            while pending_count >= batch_size:
+                joined = {k: np.concatenate(v) for k, v in pending.items()}
+                yield {k: v[:batch_size] for k, v in joined.items()}
+                pending = {k: [v[batch_size:]] for k, v in joined.items()}
+                pending_count -= batch_size
+
+        for shard in order:
+            arrays = self.load_shard(int(shard), keys=keys)
+            first = self._shards[int(shard)]["first"]
+            arrays["index"] = np.arange(first, first + self._shards[int(shard)]["count"], dtype=np.int64)
+            if wanted is not None:
+                keep = wanted[arrays["index"]]
+                arrays = {k: v[keep] for k, v in arrays.items()}
+            window.append(arrays)
+            if len(window) == 2:
+                yield from emit(window)
+                window = []
+        if window:
+            yield from emit(window)
+        if pending_count and not drop_last:
+            yield {k: np.concatenate(v) for k, v in pending.items()}
