@@ -1,0 +1,100 @@
+"""`pssnet dataset build|preview|stats`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from pssnet_core.geometry import ObservationError
+from pssnet_core.shapes import ShapeError
+
+
+def _build(args: argparse.Namespace) -> int:
+    from pssnet_core.data.build import build
+    from pssnet_core.data.scenes import SensorNoise
+
+    results = build(args.family, args.split, args.out, grid_size=args.grid, workers=args.workers, seed=args.seed,
+                    num_objects=args.num_objects, views=args.views, noise=SensorNoise() if args.noise else None,
+                    front_margin=args.front_margin, bottom_margin=args.bottom_margin, progress=not args.quiet)
+    for r in results:
+        state = f"built {r.shards_built} shards" + (f", {r.shards_skipped} already there" if r.shards_skipped else "")
+        print(f"{r.path}: {r.samples} samples ({state}) in {r.seconds:.1f} s")
+    return 0
+
+
+def _preview(args: argparse.Namespace) -> int:
+    from pssnet_core.data.inspect import find_datasets, preview
+
+    datasets = find_datasets(args.path)
+    for path in datasets:
+        if args.out is None:
+            out = path / "preview.png"
+        elif len(datasets) == 1:
+            out = Path(args.out)
+        else:  # one sheet per dataset: DIR/preview.png -> DIR/preview_<split>_<name>.png
+            base = Path(args.out)
+            out = base.with_name(f"{base.stem}_{path.parent.name}_{path.name}{base.suffix or '.png'}")
+        print(preview(path, out, count=args.count, seed=args.seed))
+    return 0
+
+
+def _stats(args: argparse.Namespace) -> int:
+    from pssnet_core.data.inspect import dataset_stats, find_datasets, format_stats
+
+    all_stats = [dataset_stats(p) for p in find_datasets(args.path)]
+    if args.json:
+        print(json.dumps(all_stats, indent=1))
+    else:
+        print("\n\n".join(format_stats(s) for s in all_stats))
+    return 0
+
+
+def _guarded(handler):
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return handler(args)
+        except (ValueError, ObservationError, ShapeError) as error:  # DatasetError & co. are ValueErrors
+            print(f"pssnet dataset: error: {error}", file=sys.stderr)
+            return 2
+    return run
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Adds `dataset build|preview|stats` to the `pssnet` command line."""
+    parser = subparsers.add_parser("dataset", help="build, preview and summarise synthetic datasets")
+    sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
+
+    b = sub.add_parser("build", help="render a dataset (parallel, resumable) into OUT/<split>/<name>",
+                       description="Renders the mugs / ycb datasets. Train: OUT/train/mugs, OUT/train/ycb; "
+                                   "test: OUT/test/mugs, OUT/test/ycb_narrow, OUT/test/ycb_wide. Shards already "
+                                   "on disk are kept, so running the same command again resumes.")
+    b.add_argument("--family", choices=("mugs", "ycb", "all"), default="all")
+    b.add_argument("--split", choices=("train", "test"), default="train")
+    b.add_argument("--out", required=True, help="build root directory")
+    b.add_argument("--grid", type=int, default=32, help="grid voxels per edge (grid spans 0.20 m); default 32")
+    b.add_argument("--workers", type=int, default=1, help="processes (each uses one core); default 1")
+    b.add_argument("--seed", type=int, default=0, help="master seed; default 0")
+    b.add_argument("--num-objects", type=int, default=None, help="objects per dataset (default: 120/300 train "
+                   "mugs/ycb, 12 per test set)")
+    b.add_argument("--views", type=int, default=None, help="views per object (default 72 mugs, 24 ycb train, "
+                   "72 ycb test)")
+    b.add_argument("--noise", action="store_true", help="add Kinect-like depth noise and edge dropout")
+    b.add_argument("--front-margin", type=float, default=None, help="grid front margin in voxels "
+                   "(default GridConfig's; the node must use the same)")
+    b.add_argument("--bottom-margin", type=float, default=None, help="grid bottom margin in voxels (likewise)")
+    b.add_argument("--quiet", action="store_true", help="no progress bar")
+    b.set_defaults(func=_guarded(_build))
+
+    p = sub.add_parser("preview", help="PNG sheet of a few samples (depth, mask, grids)")
+    p.add_argument("path", help="a dataset directory or a build root holding several")
+    p.add_argument("--out", default=None, help="PNG path (default: <dataset>/preview.png)")
+    p.add_argument("--count", type=int, default=8, help="samples per sheet; default 8")
+    p.add_argument("--seed", type=int, default=0, help="which samples (random pick); default 0")
+    p.set_defaults(func=_guarded(_preview))
+
+    s = sub.add_parser("stats", help="counts, handle visibility, clipping, occupancy fractions per family")
+    s.add_argument("path", help="a dataset directory or a build root holding several")
+    s.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    s.set_defaults(func=_guarded(_stats))

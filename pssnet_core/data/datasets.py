@@ -1,0 +1,444 @@
+"""Dataset specifications (mugs, ycb, ycb_narrow, ycb_wide) and the making of one sample.
+
+A dataset is a list of ``num_objects * views`` samples; sample ``index`` shows object ``index // views``
+in view ``index % views``. Everything random about a sample comes from its own generator, seeded by
+``(seed, stream, index)``, so any sample can be made alone, in any process, in any order, with the same
+result; ``ycb_narrow`` and ``ycb_wide`` share a stream, hence the same objects, poses and cameras, and differ
+only in the slit.
+
+The experiments (DESIGN.md, paper Sec. 5):
+
+* ``mugs``: each mug turned about the vertical in ``360 / views`` degree steps (72 views: 5 degrees);
+  a fresh camera (distance 0.5-1.0 m, looking down 0-45 degrees, aim jitter 1 cm) for every view, always
+  from the same side (azimuth 180 degrees), so the yaw alone decides where the handle points. No slit.
+* ``ycb`` (train): 24 rotations per object (12 yaws 30 degrees apart, plus a random per-object offset,
+  standing upright and tipped 90 degrees about a horizontal axis), a random translation on the plane
+  (within +-5 cm), a fresh camera per view, and a vertical slit 3-18 cm wide at the object whose centre lies
+  within +-10 % of the object's visible width from its centre (wider offsets push the grid, which is
+  centred sideways on what is seen, off the object: 25 % clipped 4 % of the views sideways).
+* ``ycb_narrow`` / ``ycb_wide`` (test): the same 24 rotations, each seen through a fixed slit (3.6 cm / 18 cm)
+  at three translations of the object across the slit (-1, 0, +1 cm, limited to a quarter of the object's
+  visible width so that the slit always stays over the object's central part): 72 views per object.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from pssnet_core.data.scenes import (
+    CROP_MARGIN_PX,
+    ObjectScene,
+    RenderedView,
+    SceneError,
+    SensorNoise,
+    Slit,
+    box_in_grid,
+    crop_window,
+    object_pose,
+    orbit_camera,
+    posed_box_corners,
+)
+from pssnet_core.geometry import CameraIntrinsics, GridConfig, ObservationError
+from pssnet_core.shapes import YCB_FAMILIES, Shape, ShapeId, make_shape, split_seeds
+
+MUG_VIEWS = 72
+YCB_ROTATIONS = 24
+YCB_TRANSLATION_STEPS = (-1, 0, 1)
+NARROW_SLIT_M = 0.036
+WIDE_SLIT_M = 0.18
+SLIT_MODES = ("none", "random", "fixed")
+DATASET_NAMES = ("mugs", "ycb", "ycb_narrow", "ycb_wide")
+MAX_ATTEMPTS = 20
+
+# Default object counts: `--family all --split train` gives 120 * 72 + 300 * 24 = 15,840 samples; every
+# test set has 12 objects * 72 views = 864 samples (evaluation is quadratic in the test-set size).
+DEFAULT_OBJECTS: dict[tuple[str, str], int] = {
+    ("mugs", "train"): 120, ("ycb", "train"): 300,
+    ("mugs", "test"): 12, ("ycb_narrow", "test"): 12, ("ycb_wide", "test"): 12,
+}
+
+
+class DatasetSpecError(ValueError):
+    """A dataset specification or build request is invalid; the message says which part."""
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """Everything that determines a dataset's samples (stored in its index as ``meta["spec"]``).
+
+    Attributes:
+        name: "mugs", "ycb", "ycb_narrow" or "ycb_wide".
+        split: "train" or "test" (object seeds come from :func:`split_seeds`, disjoint by identity).
+        families: object families, cycled over the objects (object i has family ``families[i % len]``).
+        num_objects: number of objects.
+        views: views per object (mugs: yaw steps of 360/views degrees; ycb: evenly spread over the
+            rotation x translation combinations, 24 for training and 72 for the test sets).
+        grid_size: observation grid voxels per edge (the grid always spans 0.20 m).
+        front_margin: grid placement margin in front of the nearest observed point (voxels); the node must
+            use the same value (it is stored in the dataset's meta as ``grid_config``).
+        bottom_margin: grid placement margin below the lowest observed point (voxels), likewise.
+        seed: master seed.
+        stream: name of the random stream (defaults to ``name``); datasets sharing it share poses.
+        slit_mode: "none", "random" (train: width in ``slit_range_m``) or "fixed" (``slit_width_m``).
+        slit_width_m: fixed slit width (m).
+        slit_range_m: range of the random slit width (m).
+        slit_offset_fraction: random slit centre within +- this fraction of the object's visible width.
+        translation_step_m: fixed-slit test sets: step of the object's translation across the slit (m).
+        translations: number of translation steps in fixed-slit test sets (views per rotation).
+        ycb_translation_m: training translation of ycb objects on the plane, uniform in +- this (m).
+        distance_range_m: camera distance from the aim point (m).
+        tilt_range_deg: camera looking down this many degrees.
+        aim_jitter_m: the camera aims at the object's box centre plus a uniform offset within +- this (m).
+        objects_per_shard: objects per shard (the unit of parallel work and of resuming).
+        noise: sensor imperfections, or None for exact depth (the default; ground truth is always exact).
+        image_width: image width (pixels; Kinect-like intrinsics scaled to it).
+        image_height: image height (pixels).
+    """
+
+    name: str
+    split: str
+    families: tuple[str, ...]
+    num_objects: int
+    views: int
+    grid_size: int = 32
+    front_margin: float = GridConfig.front_margin
+    bottom_margin: float = GridConfig.bottom_margin
+    seed: int = 0
+    stream: str = ""
+    slit_mode: str = "none"
+    slit_width_m: float | None = None
+    slit_range_m: tuple[float, float] = (0.03, 0.18)
+    slit_offset_fraction: float = 0.1
+    translation_step_m: float = 0.01
+    translations: int = 1
+    ycb_translation_m: float = 0.05
+    distance_range_m: tuple[float, float] = (0.5, 1.0)
+    tilt_range_deg: tuple[float, float] = (0.0, 45.0)
+    aim_jitter_m: float = 0.01
+    objects_per_shard: int = 4
+    noise: SensorNoise | None = None
+    image_width: int = 640
+    image_height: int = 480
+
+    def __post_init__(self) -> None:
+        if self.split not in ("train", "val", "test"):
+            raise DatasetSpecError(f"split must be train, val or test, got {self.split!r}")
+        if self.num_objects < 1 or self.views < 1 or self.objects_per_shard < 1:
+            raise DatasetSpecError(
+                f"num_objects, views and objects_per_shard must be >= 1, got {self.num_objects}, {self.views}, "
+                f"{self.objects_per_shard}")
+        if self.slit_mode not in SLIT_MODES:
+            raise DatasetSpecError(f"slit_mode must be one of {SLIT_MODES}, got {self.slit_mode!r}")
+        if self.slit_mode == "fixed" and not (self.slit_width_m and self.slit_width_m > 0):
+            raise DatasetSpecError("a fixed slit needs a positive slit_width_m")
+        if not self.is_mugs and self.views > self.combinations:
+            raise DatasetSpecError(
+                f"{self.name} has {self.combinations} rotation/translation combinations per object; "
+                f"views must be at most that, got {self.views}")
+        if not 0 <= self.tilt_range_deg[0] <= self.tilt_range_deg[1] < 80:
+            raise DatasetSpecError(f"tilt range must lie in [0, 80) degrees, got {self.tilt_range_deg}")
+        if not 0 < self.distance_range_m[0] <= self.distance_range_m[1]:
+            raise DatasetSpecError(f"distance range must be positive and ordered, got {self.distance_range_m}")
+        _ = self.grid_config  # validates size and margins
+
+    @property
+    def is_mugs(self) -> bool:
+        return self.families == ("mug",)
+
+    @property
+    def combinations(self) -> int:
+        """Distinct (rotation, translation) views per object for the ycb datasets."""
+        return YCB_ROTATIONS * max(self.translations, 1)
+
+    @property
+    def num_samples(self) -> int:
+        return self.num_objects * self.views
+
+    @property
+    def num_shards(self) -> int:
+        return math.ceil(self.num_objects / self.objects_per_shard)
+
+    @property
+    def grid_config(self) -> GridConfig:
+        base = GridConfig.for_size(self.grid_size)
+        return replace(base, front_margin=float(self.front_margin), bottom_margin=float(self.bottom_margin))
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics.kinect_like(self.image_width, self.image_height)
+
+    def shard_range(self, shard: int) -> range:
+        """Sample indices of shard ``shard``."""
+        if not 0 <= shard < self.num_shards:
+            raise DatasetSpecError(f"shard {shard} out of range for {self.num_shards} shards")
+        first = shard * self.objects_per_shard
+        last = min(first + self.objects_per_shard, self.num_objects)
+        return range(first * self.views, last * self.views)
+
+    def object_identities(self) -> list[ShapeId]:
+        """Identity of every object, in order."""
+        seeds = split_seeds(self.split, self.num_objects)
+        return [ShapeId(self.families[i % len(self.families)], seed) for i, seed in enumerate(seeds)]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (JSON)."""
+        data = asdict(self)
+        data["families"] = list(self.families)
+        data["noise"] = None if self.noise is None else asdict(self.noise)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> DatasetSpec:
+        """Inverse of :meth:`to_dict`."""
+        data = dict(data)
+        data["families"] = tuple(data["families"])
+        for key in ("slit_range_m", "distance_range_m", "tilt_range_deg"):
+            data[key] = tuple(data[key])
+        data["noise"] = None if data.get("noise") is None else SensorNoise(**data["noise"])
+        return cls(**data)
+
+
+def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, num_objects: int | None = None,
+                  views: int | None = None, noise: SensorNoise | None = None,
+                  front_margin: float | None = None, bottom_margin: float | None = None) -> list[DatasetSpec]:
+    """The datasets of an experiment family and split.
+
+    Args:
+        family: "mugs", "ycb" or "all".
+        split: "train" or "test"; the ycb test split is two datasets, ``ycb_narrow`` and ``ycb_wide``.
+        grid_size: voxels per grid edge (32 or 64 in the paper's experiments).
+        seed: master seed.
+        num_objects: overrides the default number of objects of every dataset.
+        views: overrides the number of views per object.
+        noise: sensor imperfections (None: exact depth).
+        front_margin: grid placement margin override (voxels; default GridConfig's).
+        bottom_margin: grid placement margin override (voxels; default GridConfig's).
+    """
+    if family not in ("mugs", "ycb", "all"):
+        raise DatasetSpecError(f"family must be mugs, ycb or all, got {family!r}")
+    if split not in ("train", "test"):
+        raise DatasetSpecError(f"split must be train or test, got {split!r}")
+    common: dict[str, Any] = {"split": split, "grid_size": grid_size, "seed": seed, "noise": noise}
+    if front_margin is not None:
+        common["front_margin"] = float(front_margin)
+    if bottom_margin is not None:
+        common["bottom_margin"] = float(bottom_margin)
+    specs: list[DatasetSpec] = []
+    if family in ("mugs", "all"):
+        specs.append(DatasetSpec(name="mugs", families=("mug",), views=MUG_VIEWS,
+                                 num_objects=DEFAULT_OBJECTS[("mugs", split)], objects_per_shard=4, **common))
+    if family in ("ycb", "all"):
+        if split == "train":
+            specs.append(DatasetSpec(name="ycb", families=YCB_FAMILIES, views=YCB_ROTATIONS, slit_mode="random",
+                                     num_objects=DEFAULT_OBJECTS[("ycb", "train")], objects_per_shard=12, **common))
+        else:
+            for name, width in (("ycb_narrow", NARROW_SLIT_M), ("ycb_wide", WIDE_SLIT_M)):
+                specs.append(DatasetSpec(
+                    name=name, families=YCB_FAMILIES, stream="ycb_test", slit_mode="fixed", slit_width_m=width,
+                    translations=len(YCB_TRANSLATION_STEPS), views=YCB_ROTATIONS * len(YCB_TRANSLATION_STEPS),
+                    ycb_translation_m=0.0, num_objects=DEFAULT_OBJECTS[(name, split)], objects_per_shard=4,
+                    **common))
+    overrides: dict[str, Any] = {}
+    if num_objects is not None:
+        overrides["num_objects"] = int(num_objects)
+    if views is not None:
+        overrides["views"] = int(views)
+    return [replace(s, **overrides) for s in specs] if overrides else specs
+
+
+# ---------------------------------------------------------------------------------------------- samples
+
+
+def _rng(spec: DatasetSpec, *key: int) -> np.random.Generator:
+    stream = zlib.crc32(f"{spec.stream or spec.name}/{spec.split}".encode())
+    return np.random.default_rng([int(spec.seed), stream, *key])
+
+
+@dataclass(frozen=True)
+class ViewPlan:
+    """The drawn parameters of one sample's view (recorded with the sample)."""
+
+    yaw_deg: float
+    tip_deg: float
+    translation: tuple[float, float]
+    distance_m: float
+    tilt_deg: float
+    aim_offset: tuple[float, float, float]
+    slit: Slit | None
+    noise_seed: int
+    translation_step: int | None
+
+
+def plan_view(spec: DatasetSpec, index: int, attempt: int = 0) -> ViewPlan:
+    """Draws the view parameters of sample ``index`` (attempt > 0: a redraw after an unusable view)."""
+    obj, view = divmod(index, spec.views)
+    rng = _rng(spec, 0, index, attempt)
+    step = None
+    if spec.is_mugs:
+        yaw, tip, translation = view * 360.0 / spec.views, 0.0, (0.0, 0.0)
+    else:
+        combo = view * spec.combinations // spec.views
+        rotation, step_index = divmod(combo, max(spec.translations, 1))
+        yaw_offset = float(_rng(spec, 1, obj).uniform(0.0, 30.0))  # per object, same for all its views
+        yaw = (rotation % 12) * 30.0 + yaw_offset
+        tip = 90.0 * (rotation // 12)
+        t = spec.ycb_translation_m
+        translation = tuple(float(x) for x in rng.uniform(-t, t, size=2)) if t > 0 else (0.0, 0.0)
+        if spec.slit_mode == "fixed":
+            steps = YCB_TRANSLATION_STEPS if spec.translations == len(YCB_TRANSLATION_STEPS) else \
+                tuple(range(-(spec.translations // 2), spec.translations - spec.translations // 2))
+            step = int(steps[step_index])
+    slit = None
+    if spec.slit_mode == "random":
+        slit = Slit(width_m=float(rng.uniform(*spec.slit_range_m)),
+                    offset_fraction=float(rng.uniform(-spec.slit_offset_fraction, spec.slit_offset_fraction)))
+    elif spec.slit_mode == "fixed":
+        # The object moves across the fixed slit: equivalently the slit moves the other way over the object.
+        slit = Slit(width_m=float(spec.slit_width_m), offset_m=-(step or 0) * spec.translation_step_m,
+                    max_offset_fraction=0.25)
+    return ViewPlan(
+        yaw_deg=float(yaw), tip_deg=float(tip), translation=translation,
+        distance_m=float(rng.uniform(*spec.distance_range_m)), tilt_deg=float(rng.uniform(*spec.tilt_range_deg)),
+        aim_offset=tuple(float(x) for x in rng.uniform(-spec.aim_jitter_m, spec.aim_jitter_m, size=3)),
+        slit=slit, noise_seed=int(rng.integers(2**31)), translation_step=step)
+
+
+def make_sample(spec: DatasetSpec, index: int, scene: ObjectScene) -> dict[str, Any]:
+    """Renders and observes sample ``index`` of ``spec``; ``scene`` must hold that sample's object.
+
+    Returns:
+        The sample dict written to a shard: arrays ``known_occupied``, ``known_free``, ``occupancy``
+        (bool N^3), ``box`` ((24,) float32 grid coordinates), ``depth`` (uint16 mm crop), ``mask`` (uint8
+        crop) and the record fields documented in the data README.
+
+    Raises:
+        DatasetSpecError: no usable view after :data:`MAX_ATTEMPTS` draws (a bug in the spec's ranges).
+    """
+    shape = scene.shape
+    obj, view_index = divmod(index, spec.views)
+    config = spec.grid_config
+    intrinsics = spec.intrinsics
+    last_error: Exception | None = None
+    for attempt in range(MAX_ATTEMPTS):
+        plan = plan_view(spec, index, attempt)
+        pose = object_pose(shape.mesh, plan.yaw_deg, plan.tip_deg, plan.translation)
+        target = posed_box_corners(shape, pose).mean(axis=0) + np.asarray(plan.aim_offset)
+        camera = orbit_camera(target, plan.distance_m, plan.tilt_deg)
+        try:
+            view = scene.render(pose, camera, intrinsics, slit=plan.slit, noise=spec.noise,
+                                noise_seed=plan.noise_seed)
+            obs = view.observe(config)
+        except (SceneError, ObservationError) as error:  # e.g. too few pixels left in a slit: redraw
+            last_error = error
+            continue
+        break
+    else:
+        raise DatasetSpecError(f"sample {index} of {spec.name}: no usable view in {MAX_ATTEMPTS} draws "
+                               f"(last error: {last_error})")
+    occupancy = scene.ground_truth(pose, obs.pose, camera)
+    overshoot = scene.grid_overshoot(pose, obs.pose, camera)
+    v0, u0, v1, u1 = crop_window(view, obs.pose)
+    depth_mm = np.rint(view.depth[v0:v1, u0:u1].astype(np.float64) * 1000.0).astype(np.uint16)
+    return {
+        "known_occupied": obs.known_occupied,
+        "known_free": obs.known_free,
+        "occupancy": occupancy,
+        "box": box_in_grid(shape, pose, obs.pose, camera),
+        "depth": depth_mm,
+        "mask": view.mask[v0:v1, u0:u1].copy(),
+        "index": int(index),
+        "dataset": spec.name,
+        "split": spec.split,
+        "identity": str(shape.identity),
+        "family": shape.identity.family,
+        "seed": int(shape.identity.seed),
+        "object_index": int(obj),
+        "view": int(view_index),
+        "rotation_deg": plan.yaw_deg,
+        "tip_deg": plan.tip_deg,
+        "translation": list(plan.translation),
+        "translation_step": plan.translation_step,
+        "distance_m": plan.distance_m,
+        "tilt_deg": plan.tilt_deg,
+        "object_pose": pose.tolist(),
+        "camera_pose": camera.tolist(),
+        "intrinsics": asdict(intrinsics),
+        "up": view.up.tolist(),
+        "grid_pose": obs.pose.to_dict(),
+        "handle_visible": view.handle_visible,
+        "handle_area_m2": view.handle_area_m2,
+        "has_handle": shape.handle is not None if shape.identity.family == "mug" else None,
+        "slit_width_m": None if plan.slit is None else plan.slit.width_m,
+        "slit_columns": None if view.slit_columns is None else list(view.slit_columns),
+        "noise": None if spec.noise is None else asdict(spec.noise),
+        "noise_seed": plan.noise_seed,
+        "attempts": attempt + 1,
+        "crop": [v0, u0],
+        "image_size": [intrinsics.height, intrinsics.width],
+        "clipped": bool(overshoot > 0.5),
+        "overshoot_voxels": overshoot,
+        "occupied_voxels": int(occupancy.sum()),
+    }
+
+
+def full_images(sample: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Rebuilds the full-size depth (float32 metres, 0 = no reading) and mask (uint8) of a stored sample.
+
+    The stored crop covers the mask and the projection of the whole observation grid plus the
+    free-space carving footprint (:data:`pssnet_core.data.scenes.CROP_MARGIN_PX`), so
+    ``observe(depth, mask, ...)`` on the rebuilt images gives exactly the stored grids. Pixels outside the
+    crop read 0 (no reading); re-render with :func:`rerender` for the plane around them.
+    """
+    height, width = sample["image_size"]
+    v0, u0 = sample["crop"]
+    crop_depth = np.asarray(sample["depth"])
+    crop_mask = np.asarray(sample["mask"])
+    h, w = crop_depth.shape
+    depth = np.zeros((height, width), dtype=np.float32)
+    mask = np.zeros((height, width), dtype=np.uint8)
+    depth[v0:v0 + h, u0:u0 + w] = (crop_depth.astype(np.float64) / 1000.0).astype(np.float32)
+    mask[v0:v0 + h, u0:u0 + w] = crop_mask
+    return depth, mask
+
+
+def sample_intrinsics(sample: dict[str, Any]) -> CameraIntrinsics:
+    """The stored intrinsics of a sample."""
+    return CameraIntrinsics(**sample["intrinsics"])
+
+
+def rerender(sample: dict[str, Any], shape: Shape | None = None) -> RenderedView:
+    """Renders a stored sample's view again (whole image) from its record: same pose, camera, slit, noise.
+
+    Args:
+        sample: a stored sample (record fields suffice).
+        shape: the sample's shape, if already made (it is regenerated from the identity otherwise).
+
+    Returns:
+        A :class:`pssnet_core.data.scenes.RenderedView`; its depth equals the stored crop inside the crop.
+    """
+    identity = ShapeId.parse(sample["identity"])
+    shape = shape if shape is not None else make_shape(identity.family, identity.seed)
+    slit_columns = sample.get("slit_columns")
+    view = ObjectScene(shape).render(
+        np.asarray(sample["object_pose"]), np.asarray(sample["camera_pose"]), sample_intrinsics(sample),
+        noise=SensorNoise(**sample["noise"]) if sample.get("noise") else None,
+        noise_seed=int(sample.get("noise_seed", 0)))
+    if slit_columns is not None:
+        outside = np.ones(view.depth.shape[1], dtype=bool)
+        outside[slit_columns[0]:slit_columns[1]] = False
+        view.depth[:, outside] = 0.0
+        view.mask[:, outside] = 0
+        view.slit_columns = (int(slit_columns[0]), int(slit_columns[1]))
+    return view
+
+
+__all__ = [
+    "CROP_MARGIN_PX", "DATASET_NAMES", "DEFAULT_OBJECTS", "DatasetSpec", "DatasetSpecError", "MUG_VIEWS",
+    "NARROW_SLIT_M", "WIDE_SLIT_M", "YCB_ROTATIONS", "ViewPlan", "dataset_specs", "full_images", "make_sample",
+    "plan_view", "rerender", "sample_intrinsics",
+]
