@@ -1,0 +1,176 @@
+"""Inference facade used by the ROS node and the evaluation: checkpoint in, sampled completions out.
+
+    completer = Completer.from_checkpoint(None)          # the shipped default 32^3 PSSNet
+    result = completer.complete(observation, num_samples=20, seed=0)
+    result.occupancy                                      # (20, N, N, N) bool
+
+The encoder runs once per call and the decoder once on all latents in one batch, under
+``torch.inference_mode``. The fast path (``fast=True``) uses channels_last_3d weights and, where the
+hardware runs bf16 natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), bf16 autocast; elsewhere fp32.
+
+This module imports only torch/numpy (+ PyYAML via the configs): no open3d, cv2, trimesh or rclpy, so it
+also runs on the GPU training machine. Observations are taken by duck typing (``.network_input()``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from pssnet_core.models.base import CompletionModel, StepContext, fast_dtype
+from pssnet_core.models.config import ModelConfig
+from pssnet_core.training.checkpoint import CheckpointError, load_checkpoint
+
+if TYPE_CHECKING:
+    from pssnet_core.geometry import Observation
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "default_pssnet_32.pt"
+
+__all__ = ["DEFAULT_CHECKPOINT", "CheckpointError", "Completer", "CompletionInputError", "CompletionResult",
+           "default_checkpoint_path"]
+
+
+class CompletionInputError(ValueError):
+    """The observation or network input given to :meth:`Completer.complete` is unusable."""
+
+
+@dataclass(frozen=True)
+class CompletionResult:
+    """Sampled completions of one observation.
+
+    Attributes:
+        probabilities: (n, N, N, N) float32 occupancy probabilities.
+        occupancy: (n, N, N, N) bool, ``probabilities > 0.5``.
+        grid_size: N.
+        seed: the seed used for the latent noise.
+        model: registry name of the model that produced them.
+        elapsed_s: wall time of the network part.
+    """
+
+    probabilities: np.ndarray
+    occupancy: np.ndarray
+    grid_size: int
+    seed: int
+    model: str
+    elapsed_s: float
+
+    @property
+    def num_samples(self) -> int:
+        return int(self.probabilities.shape[0])
+
+
+def default_checkpoint_path() -> Path:
+    """Where the shipped default model lives (inside the package)."""
+    return DEFAULT_CHECKPOINT
+
+
+class Completer:
+    """Holds a loaded model and samples completions from observations.
+
+    Args:
+        model: a registry model (eval mode is set here).
+        config: its config.
+        device: "cpu" or "cuda".
+        threads: torch CPU threads to use (process-wide setting); None leaves torch's default.
+        fast: channels_last_3d + bf16 autocast where native; False = plain fp32 eager (reference).
+        info: checkpoint metadata (``extra``), kept for callers.
+    """
+
+    def __init__(self, model: CompletionModel, config: ModelConfig, device: str | torch.device = "cpu",
+                 threads: int | None = None, fast: bool = True, info: dict[str, Any] | None = None) -> None:
+        self.device = torch.device(device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError("device cuda requested but torch sees no CUDA device")
+        if threads is not None:
+            if threads < 1:
+                raise ValueError(f"threads must be >= 1, got {threads}")
+            torch.set_num_threads(threads)
+        self.config = config
+        self.info = dict(info or {})
+        self.fast = fast
+        self.model = model.to(self.device).eval()
+        if fast:
+            self.model.to_fast_layout()
+        self.ctx = StepContext(self.device, fast_dtype(self.device) if fast else None)
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path | None = None, device: str | torch.device = "cpu",
+                        threads: int | None = None, fast: bool = True) -> Completer:
+        """Loads a checkpoint (``weights_only``); ``path`` None loads the shipped default 32^3 PSSNet.
+
+        Raises:
+            CheckpointError: the file is missing, corrupt or not a model checkpoint.
+        """
+        if path is None:
+            path = DEFAULT_CHECKPOINT
+            if not path.is_file():
+                raise CheckpointError(
+                    f"the default model {path} is missing from this installation. Train one with "
+                    "`pssnet train --model pssnet --data DATA --out runs/pssnet32`, then "
+                    f"`pssnet export-model runs/pssnet32/best.pt {path}`, or pass a checkpoint path")
+        model, config, extra = load_checkpoint(path, map_location="cpu")
+        extra["path"] = str(path)
+        return cls(model, config, device=device, threads=threads, fast=fast, info=extra)
+
+    @property
+    def grid_size(self) -> int:
+        return self.config.grid_size
+
+    @property
+    def model_name(self) -> str:
+        return self.config.model
+
+    @property
+    def precision(self) -> str:
+        """"bfloat16" or "fp32": what the network actually runs in."""
+        return self.ctx.precision
+
+    def _network_input(self, observation: Observation | np.ndarray | torch.Tensor) -> torch.Tensor:
+        if hasattr(observation, "network_input"):
+            observation = observation.network_input()
+        if isinstance(observation, torch.Tensor):
+            array = observation.detach().to("cpu", torch.float32)
+        elif isinstance(observation, np.ndarray):
+            array = torch.from_numpy(np.ascontiguousarray(observation, dtype=np.float32))
+        else:
+            raise CompletionInputError(f"expected an Observation or a (2, N, N, N) array, got "
+                                       f"{type(observation).__name__}")
+        n = self.grid_size
+        if array.ndim == 5 and array.shape[0] == 1:
+            array = array[0]
+        if tuple(array.shape) != (2, n, n, n):
+            raise CompletionInputError(f"network input must have shape (2, {n}, {n}, {n}) for this "
+                                       f"{n}^3 model, got {tuple(array.shape)}")
+        if not torch.isfinite(array).all():
+            raise CompletionInputError("network input contains NaN or inf")
+        return array[None]
+
+    def complete(self, observation: Observation | np.ndarray | torch.Tensor, num_samples: int = 20,
+                 seed: int = 0) -> CompletionResult:
+        """Samples ``num_samples`` completions of one observation.
+
+        Args:
+            observation: an ``Observation`` (anything with ``network_input()``) or its (2, N, N, N) array
+                (channel 0 known occupied, channel 1 known free), numpy or torch.
+            num_samples: number of completions (>= 1).
+            seed: seed of the latent noise; the same seed gives the same samples.
+
+        Returns:
+            A :class:`CompletionResult`.
+        """
+        if isinstance(num_samples, bool) or not isinstance(num_samples, int | np.integer) or num_samples < 1:
+            raise CompletionInputError(f"num_samples must be a positive int, got {num_samples!r}")
+        x = self._network_input(observation)
+        generator = torch.Generator().manual_seed(int(seed))
+        t0 = time.perf_counter()
+        with torch.inference_mode(), self.ctx.autocast():
+            probs = self.model.sample(x, int(num_samples), generator=generator)
+        probs_np = probs[:, 0].float().cpu().numpy()
+        elapsed = time.perf_counter() - t0
+        return CompletionResult(probabilities=probs_np, occupancy=probs_np > 0.5, grid_size=self.grid_size,
+                                seed=int(seed), model=self.model_name, elapsed_s=elapsed)

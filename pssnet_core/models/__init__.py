@@ -1,0 +1,30 @@
+"""Completion models (PSSNet and the paper's baselines), looked up by name from one registry.
+
+Importing this package needs only torch, numpy and PyYAML (no open3d, trimesh or rclpy), so training and
+inference run on machines without them.
+"""
+
+from pssnet_core.models.base import (
+    CompletionModel,
+    ModelInputError,
+    StepContext,
+    cpu_has_fast_bf16,
+    fast_dtype,
+)
+from pssnet_core.models.config import (
+    ConfigError,
+    ModelConfig,
+    PSSNetConfig,
+    RecGANConfig,
+    VAEConfig,
+    VAEGANConfig,
+    config_from_dict,
+    config_from_yaml,
+)
+from pssnet_core.models.registry import build_model, default_config, get_model_class, model_names
+
+__all__ = [
+    "CompletionModel", "ConfigError", "ModelConfig", "ModelInputError", "PSSNetConfig", "RecGANConfig",
+    "StepContext", "VAEConfig", "VAEGANConfig", "build_model", "config_from_dict", "config_from_yaml",
+    "cpu_has_fast_bf16", "default_config", "fast_dtype", "get_model_class", "model_names",
+]

@@ -1,0 +1,188 @@
+"""Common interface of the completion models and the precision/device helpers they share.
+
+Interface (what the trainer and the inference facade call):
+
+- ``model.make_optimizers(lr) -> dict[str, Optimizer]``: every model owns how its parameters are split
+  (the GAN models return a generator and a discriminator optimiser, PSSNet a VAE and a flow one).
+- ``model.training_step(batch, optimizers, ctx) -> dict[str, float]``: one full update (forward, backward,
+  optimiser steps) on a batch with keys ``input`` (B,2,N,N,N), ``target`` (B,1,N,N,N) float and ``box``
+  (B,24); returns the loss terms for logging. ``ctx`` says how to autocast.
+- ``model.pretrain(box_source, ctx) -> dict[str, float]``: optional warm-up before the main loop (PSSNet
+  trains its flow there); the default does nothing.
+- ``model.reconstruct(input) -> logits`` (B,1,N,N,N): one deterministic completion (posterior mean), for
+  validation loss and IoU.
+- ``model.sample(input, num_samples, generator) -> probabilities``: see :meth:`CompletionModel.sample`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import ClassVar
+
+import torch
+from torch import nn
+
+from pssnet_core.models.config import ModelConfig
+
+
+class ModelInputError(ValueError):
+    """A tensor given to a model has the wrong shape or type."""
+
+
+@lru_cache(maxsize=1)
+def cpu_has_fast_bf16() -> bool:
+    """True when this CPU has native bf16 matrix instructions (AVX512-BF16 or AMX-BF16).
+
+    Without them oneDNN emulates bf16 and it is slower than fp32, so the fast path falls back to fp32.
+    Read from /proc/cpuinfo (Linux); anywhere else we assume no.
+    """
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    flags: set[str] = set()
+    for line in text.splitlines():
+        if line.startswith("flags"):
+            flags = set(line.split(":", 1)[1].split())
+            break
+    return bool({"avx512_bf16", "amx_bf16"} & flags)
+
+
+def fast_dtype(device: torch.device | str) -> torch.dtype | None:
+    """The autocast dtype of the fast path on ``device``: bf16 where the hardware runs it natively, else None."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
+    if device.type == "cpu":
+        return torch.bfloat16 if cpu_has_fast_bf16() else None
+    return None
+
+
+@dataclass(frozen=True)
+class StepContext:
+    """How a step runs: the device and the autocast dtype (``None`` = plain fp32)."""
+
+    device: torch.device
+    autocast_dtype: torch.dtype | None = None
+
+    def autocast(self) -> contextlib.AbstractContextManager:
+        """Autocast context for forward passes (backward runs outside it)."""
+        if self.autocast_dtype is None:
+            return contextlib.nullcontext()
+        return torch.autocast(device_type=self.device.type, dtype=self.autocast_dtype)
+
+    @property
+    def precision(self) -> str:
+        return "fp32" if self.autocast_dtype is None else str(self.autocast_dtype).replace("torch.", "")
+
+
+def fp32_region(device: torch.device) -> contextlib.AbstractContextManager:
+    """Disables autocast (small numerically delicate parts: flow, KL, losses)."""
+    return torch.autocast(device_type=device.type, enabled=False)
+
+
+class CompletionModel(nn.Module):
+    """Base class of the registry's models; see the module docstring for the interface."""
+
+    name: ClassVar[str] = ""
+    #: parameter-name prefixes used only for training; an inference export may drop them.
+    training_only_prefixes: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.grid_size = config.grid_size
+
+    # ----------------------------------------------------------------------------------------- helpers
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    def check_input(self, x: torch.Tensor) -> torch.Tensor:
+        """Validates a (B,2,N,N,N) network input and moves it to the model's device and memory format."""
+        n = self.grid_size
+        if not isinstance(x, torch.Tensor):
+            raise ModelInputError(f"network input must be a torch.Tensor, got {type(x).__name__}")
+        if x.ndim != 5 or x.shape[1:] != (2, n, n, n) or x.shape[0] < 1:
+            raise ModelInputError(f"network input must have shape (B, 2, {n}, {n}, {n}), got {tuple(x.shape)}")
+        x = x.to(self.device, dtype=torch.float32)
+        if self.uses_channels_last():
+            x = x.contiguous(memory_format=torch.channels_last_3d)
+        return x
+
+    def uses_channels_last(self) -> bool:
+        for p in self.parameters():
+            if p.ndim == 5:
+                return p.is_contiguous(memory_format=torch.channels_last_3d) and not p.is_contiguous()
+        return False
+
+    def to_fast_layout(self) -> CompletionModel:
+        """channels_last_3d weights: the fast conv layout for oneDNN (CPU) and cuDNN."""
+        return self.to(memory_format=torch.channels_last_3d)
+
+    def parameters_except(self, *prefixes: str) -> Iterator[nn.Parameter]:
+        """Parameters whose names start with none of ``prefixes``."""
+        for name, p in self.named_parameters():
+            if not name.startswith(prefixes):
+                yield p
+
+    # -------------------------------------------------------------------------------------- interface
+    def make_optimizers(self, lr: float) -> dict[str, torch.optim.Optimizer]:
+        return {"main": torch.optim.Adam(self.parameters(), lr=lr)}
+
+    def pretrain(self, box_source: Callable[[int], Iterator[torch.Tensor]], ctx: StepContext
+                 ) -> dict[str, float]:
+        """Optional warm-up before the main loop; ``box_source(batch_size)`` yields box batches endlessly.
+
+        The default does nothing."""
+        del box_source, ctx
+        return {}
+
+    def training_step(self, batch: dict[str, torch.Tensor], optimizers: dict[str, torch.optim.Optimizer],
+                      ctx: StepContext) -> dict[str, float]:
+        raise NotImplementedError
+
+    def reconstruct(self, x: torch.Tensor) -> torch.Tensor:
+        """Deterministic completion logits (B,1,N,N,N)."""
+        raise NotImplementedError
+
+    def sample(self, x: torch.Tensor, num_samples: int,
+               generator: torch.Generator | None = None) -> torch.Tensor:
+        """Samples completions.
+
+        Args:
+            x: network input (B,2,N,N,N); usually B = 1.
+            num_samples: completions per input.
+            generator: CPU generator for the latent noise (drawn on the CPU, then moved, so that a seed gives
+                the same samples on every device).
+
+        Returns:
+            float32 occupancy probabilities (B * num_samples, 1, N, N, N); rows ``b * num_samples`` to
+            ``(b + 1) * num_samples - 1`` belong to input ``b``.
+        """
+        raise NotImplementedError
+
+
+def bce_sum(logits: torch.Tensor, target: torch.Tensor, pos_weight: float | None = None) -> torch.Tensor:
+    """Binary cross-entropy summed over voxels, mean over the batch (the per-sample ELBO scale).
+
+    With ``pos_weight`` = alpha: alpha * BCE on occupied voxels + (1 - alpha) * BCE on empty ones.
+    """
+    logits = logits.float()
+    if pos_weight is None:
+        loss = nn.functional.binary_cross_entropy_with_logits(logits, target, reduction="none")
+    else:
+        pos = nn.functional.softplus(-logits)  # -log sigmoid(l)
+        neg = nn.functional.softplus(logits)  # -log(1 - sigmoid(l))
+        loss = pos_weight * target * pos + (1.0 - pos_weight) * (1.0 - target) * neg
+    return loss.flatten(1).sum(1).mean()
+
+
+def check_num_samples(num_samples: int) -> int:
+    if not isinstance(num_samples, int) or isinstance(num_samples, bool) or num_samples < 1:
+        raise ModelInputError(f"num_samples must be a positive int, got {num_samples!r}")
+    return num_samples

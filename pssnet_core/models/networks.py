@@ -1,0 +1,129 @@
+"""3-D convolutional building blocks shared by the models (encoder, decoder, discriminator, U-Net)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def to_memory_format(x: torch.Tensor, reference: nn.Module) -> torch.Tensor:
+    """Puts a 5-D activation in the memory format of ``reference``'s first 5-D weight.
+
+    Why: the dense -> reshape step produces a contiguous (NCDHW) tensor; with channels_last_3d weights the
+    following conv is fastest (oneDNN, cuDNN) when its input is channels_last_3d too.
+    """
+    for p in reference.parameters():
+        if p.ndim == 5:
+            if p.is_contiguous(memory_format=torch.channels_last_3d) and not p.is_contiguous():
+                return x.contiguous(memory_format=torch.channels_last_3d)
+            return x
+    return x
+
+
+class Encoder3D(nn.Module):
+    """The paper's encoder: stages of Conv3d(kernel 2, stride 2) + ReLU, then one dense layer.
+
+    Args:
+        in_channels: input channels (2: known occupied, known free).
+        channels: channels per stage; each stage halves the grid.
+        grid_size: input grid size N.
+        out_features: size of the dense output (2 x latent for mean and log-variance).
+    """
+
+    def __init__(self, in_channels: int, channels: list[int], grid_size: int, out_features: int) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = in_channels
+        for ch in channels:
+            layers += [nn.Conv3d(width, ch, kernel_size=2, stride=2), nn.ReLU(inplace=True)]
+            width = ch
+        self.conv = nn.Sequential(*layers)
+        side = grid_size // 2 ** len(channels)
+        self.dense = nn.Linear(width * side**3, out_features)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.dense(self.conv(x).flatten(1))
+
+
+class Decoder3D(nn.Module):
+    """Mirror of :class:`Encoder3D`: dense (+ ReLU) to a (C, b, b, b) grid, ConvTranspose3d(2, 2) + ReLU
+    stages, last stage to one channel of occupancy *logits* (sigmoid applied by the caller)."""
+
+    def __init__(self, latent_dim: int, channels: list[int], grid_size: int) -> None:
+        super().__init__()
+        self.side = grid_size // 2 ** len(channels)
+        self.top = channels[-1]
+        self.dense = nn.Linear(latent_dim, self.top * self.side**3)
+        ins = list(reversed(channels))
+        outs = [*ins[1:], 1]
+        layers: list[nn.Module] = []
+        for i, (a, b) in enumerate(zip(ins, outs, strict=False)):
+            layers.append(nn.ConvTranspose3d(a, b, kernel_size=2, stride=2))
+            if i < len(outs) - 1:  # the last stage emits logits
+                layers.append(nn.ReLU(inplace=True))
+        self.deconv = nn.Sequential(*layers)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        h = torch.relu(self.dense(z)).view(-1, self.top, self.side, self.side, self.side)
+        return self.deconv(to_memory_format(h, self.deconv))
+
+
+class Discriminator3D(nn.Module):
+    """Conv3d(k4, s2, p1) + LeakyReLU stages, dense to one logit per input grid."""
+
+    def __init__(self, in_channels: int, channels: list[int], grid_size: int) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = in_channels
+        side = grid_size
+        for ch in channels:
+            layers += [nn.Conv3d(width, ch, kernel_size=4, stride=2, padding=1), nn.LeakyReLU(0.2, inplace=True)]
+            width, side = ch, side // 2
+        if side < 1:
+            raise ValueError(f"too many discriminator stages ({len(channels)}) for grid {grid_size}")
+        self.conv = nn.Sequential(*layers)
+        self.dense = nn.Linear(width * side**3, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.dense(self.conv(x).flatten(1)).squeeze(1)
+
+
+class UNet3D(nn.Module):
+    """3D-RecGAN++ generator without super-resolution: a U-Net with a dense bottleneck.
+
+    Encoder: Conv3d(k4, s2, p1) + LeakyReLU(0.2) per stage. Bottleneck: flatten -> dense(code) + ReLU ->
+    dense + ReLU -> reshape. Decoder: ConvTranspose3d(k4, s2, p1) whose input is the concatenation of the
+    previous decoder output and the encoder output of the same size; ReLU, last stage to 1 logit channel.
+    """
+
+    def __init__(self, in_channels: int, channels: list[int], grid_size: int, bottleneck_dim: int) -> None:
+        super().__init__()
+        self.down = nn.ModuleList()
+        width = in_channels
+        for ch in channels:
+            self.down.append(nn.Sequential(nn.Conv3d(width, ch, 4, 2, 1), nn.LeakyReLU(0.2, inplace=True)))
+            width = ch
+        self.side = grid_size // 2 ** len(channels)
+        self.top = width
+        flat = width * self.side**3
+        self.fc = nn.Sequential(nn.Linear(flat, bottleneck_dim), nn.ReLU(inplace=True),
+                                nn.Linear(bottleneck_dim, flat), nn.ReLU(inplace=True))
+        self.up = nn.ModuleList()
+        outs = [*reversed(channels[:-1]), 1]
+        for i, (skip, out) in enumerate(zip(reversed(channels), outs, strict=False)):
+            block: list[nn.Module] = [nn.ConvTranspose3d(width + skip, out, 4, 2, 1)]
+            if i < len(outs) - 1:
+                block.append(nn.ReLU(inplace=True))
+            self.up.append(nn.Sequential(*block))
+            width = out
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips = []
+        for stage in self.down:
+            x = stage(x)
+            skips.append(x)
+        h = self.fc(x.flatten(1)).view(-1, self.top, self.side, self.side, self.side)
+        h = to_memory_format(h, self.up)
+        for stage, skip in zip(self.up, reversed(skips), strict=False):
+            h = stage(torch.cat([h, skip], dim=1))
+        return h

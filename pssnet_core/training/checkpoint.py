@@ -1,0 +1,135 @@
+"""Checkpoints that rebuild their model on their own: config dict + weights (+ optional training state).
+
+File layout (a ``torch.save`` dict, loaded with ``weights_only=True``)::
+
+    format: "pssnet-checkpoint", version: 1
+    config: ModelConfig.to_dict()          -> the registry rebuilds the model from it alone
+    state_dict: weights (float32, or float16 for a compact export)
+    storage_dtype: "float32" | "float16"
+    inference_only: bool                   -> training-only modules (flow, discriminator) were dropped
+    extra: dict                            -> free-form (training state, optimiser states, metrics)
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from pssnet_core.models.base import CompletionModel
+from pssnet_core.models.config import ConfigError, ModelConfig, config_from_dict
+from pssnet_core.models.registry import build_model
+
+FORMAT = "pssnet-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, unreadable, or not a PSSNet-ROS checkpoint."""
+
+
+def save_checkpoint(path: str | Path, model: CompletionModel, config: ModelConfig | None = None,
+                    extra: dict[str, Any] | None = None, *, half: bool = False,
+                    inference_only: bool = False) -> Path:
+    """Writes a checkpoint atomically (temporary file, then rename).
+
+    Args:
+        path: destination file.
+        model: the model whose weights are saved.
+        config: its config (default: ``model.config``).
+        extra: free-form dict of tensors/numbers/strings (e.g. training state).
+        half: store floating-point weights as float16 (half the size; loaded back as float32).
+        inference_only: drop the training-only modules (``model.training_only_prefixes``: the PSSNet flow,
+            GAN discriminators); such a checkpoint samples but cannot resume training.
+
+    Returns:
+        The path written.
+    """
+    config = config or model.config
+    state: dict[str, torch.Tensor] = {}
+    for name, tensor in model.state_dict().items():
+        if inference_only and name.startswith(model.training_only_prefixes):
+            continue
+        tensor = tensor.detach().to("cpu").contiguous()
+        if half and tensor.is_floating_point():
+            tensor = tensor.to(torch.float16)
+        state[name] = tensor.clone()
+    payload = {"format": FORMAT, "version": VERSION, "config": config.to_dict(), "state_dict": state,
+               "storage_dtype": "float16" if half else "float32", "inference_only": bool(inference_only),
+               "extra": extra or {}}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """The raw checkpoint dict, validated; raises :class:`CheckpointError` with the reason."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint file at {path}; train one with `pssnet train --model pssnet "
+                              f"--data DIR --out DIR` (it writes best.pt and last.pt)")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:  # torch raises many types (pickle, zip, runtime) for a bad file
+        raise CheckpointError(f"{path} is not a readable checkpoint (corrupt or truncated?): "
+                              f"{type(error).__name__}: {error}") from error
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a PSSNet-ROS checkpoint (no '{FORMAT}' format tag)")
+    if int(payload.get("version", -1)) > VERSION:
+        raise CheckpointError(f"{path} has checkpoint version {payload.get('version')}, newer than this "
+                              f"code understands ({VERSION})")
+    for key in ("config", "state_dict"):
+        if not isinstance(payload.get(key), dict):
+            raise CheckpointError(f"{path} lacks its '{key}' entry")
+    return payload
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
+                    ) -> tuple[CompletionModel, ModelConfig, dict[str, Any]]:
+    """Rebuilds the model of a checkpoint, in eval mode with float32 weights.
+
+    Returns:
+        ``(model, config, extra)``; ``extra`` also carries ``inference_only`` and ``storage_dtype``.
+
+    Raises:
+        CheckpointError: missing, corrupt, foreign or mismatching file.
+    """
+    payload = read_checkpoint(path, map_location)
+    try:
+        config = config_from_dict(payload["config"])
+    except ConfigError as error:
+        raise CheckpointError(f"{path} has an invalid model config: {error}") from error
+    model = build_model(config)
+    state = {k: (v.float() if v.is_floating_point() else v) for k, v in payload["state_dict"].items()}
+    inference_only = bool(payload.get("inference_only", False))
+    try:
+        missing, unexpected = model.load_state_dict(state, strict=False)
+    except RuntimeError as error:  # shape mismatch
+        raise CheckpointError(f"{path}: weights do not fit its config: {error}") from error
+    allowed = model.training_only_prefixes if inference_only else ()
+    missing = [k for k in missing if not k.startswith(allowed)] if allowed else list(missing)
+    if missing or unexpected:
+        raise CheckpointError(f"{path}: weights do not match the {config.model} model "
+                              f"(missing {missing[:5]}, unexpected {list(unexpected)[:5]})")
+    model.to(map_location).eval()
+    extra = dict(payload.get("extra") or {})
+    extra.setdefault("inference_only", inference_only)
+    extra.setdefault("storage_dtype", payload.get("storage_dtype", "float32"))
+    return model, config, extra
+
+
+def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
+                      inference_only: bool = True) -> Path:
+    """Compact copy of a checkpoint for shipping: fp16 weights, training-only modules and state dropped.
+
+    The training metadata in ``extra`` (metrics, data, duration) is kept; optimiser states are not.
+    """
+    model, config, extra = load_checkpoint(src)
+    kept = {k: v for k, v in extra.items() if k not in ("optimizers", "rng", "inference_only", "storage_dtype")}
+    kept["exported_from"] = str(src)
+    return save_checkpoint(dst, model, config, kept, half=half, inference_only=inference_only)

@@ -1,0 +1,102 @@
+"""``pssnet train`` and ``pssnet export-model`` subcommands (also runnable alone: see :func:`main`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from pssnet_core.data.store import DatasetError
+from pssnet_core.models.config import ConfigError
+from pssnet_core.models.registry import model_names
+from pssnet_core.training.checkpoint import CheckpointError, export_checkpoint, read_checkpoint
+from pssnet_core.training.trainer import BEST_METRICS, TrainConfig, Trainer, TrainingError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Adds ``train`` and ``export-model`` to the ``pssnet`` command line."""
+    p = subparsers.add_parser(
+        "train", help="train a completion model (pssnet, vae, vae_gan, recgan) on a dataset directory",
+        description="Trains a model on a dataset written by `pssnet dataset build`; writes last.pt (resumable), "
+                    "best.pt, CSV logs and loss_curves.png to --out.")
+    p.add_argument("--model", required=True, choices=model_names())
+    p.add_argument("--data", required=True, help="training dataset directory")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--val-data", default=None, help="validation dataset (default: a slice of --data)")
+    p.add_argument("--epochs", type=int, default=10)
+    p.add_argument("--max-minutes", type=float, default=None, help="wall-clock budget of this invocation")
+    p.add_argument("--batch-size", type=int, default=16, help="paper: 16")
+    p.add_argument("--lr", type=float, default=1e-3, help="main Adam learning rate (paper: 1e-3)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
+                   help="auto: bf16 autocast where the hardware has native bf16 (AVX512-BF16/AMX, CUDA), else fp32")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--val-every", type=int, default=0, help="validate every N steps (0: every epoch)")
+    p.add_argument("--val-max-samples", type=int, default=512)
+    p.add_argument("--val-slice", type=int, default=16, help="inputs for the quick best-accuracy")
+    p.add_argument("--val-num-samples", type=int, default=8, help="samples per input for best-accuracy")
+    p.add_argument("--best-metric", default="val_bce", choices=sorted(BEST_METRICS))
+    p.add_argument("--log-every", type=int, default=10)
+    p.add_argument("--model-config", default=None,
+                   help="YAML of model config overrides, e.g. 'channels: [8, 16, 32, 64]' or 'flow_lr: 1e-4'")
+    p.add_argument("--half-checkpoint", action="store_true", help="store best.pt as float16")
+    p.add_argument("--no-progress", action="store_true", help="no tqdm bars")
+    p.set_defaults(func=_train)
+
+    e = subparsers.add_parser(
+        "export-model", help="compact checkpoint for shipping (fp16, no flow/discriminator/optimiser state)")
+    e.add_argument("src", help="checkpoint written by `pssnet train` (best.pt)")
+    e.add_argument("dst", help="output file, e.g. pssnet_core/checkpoints/default_pssnet_32.pt")
+    e.add_argument("--fp32", action="store_true", help="keep float32 weights")
+    e.add_argument("--keep-training-modules", action="store_true",
+                   help="keep the flow / discriminator (needed to fine-tune from the export)")
+    e.set_defaults(func=_export)
+
+
+def _train(args: argparse.Namespace) -> int:
+    try:
+        cfg = TrainConfig(model=args.model, data=args.data, out=args.out, val_data=args.val_data,
+                          epochs=args.epochs, max_minutes=args.max_minutes, batch_size=args.batch_size,
+                          lr=args.lr, device=args.device, precision=args.precision, threads=args.threads,
+                          seed=args.seed, resume=args.resume, val_every=args.val_every,
+                          val_max_samples=args.val_max_samples, val_slice=args.val_slice,
+                          val_num_samples=args.val_num_samples, best_metric=args.best_metric,
+                          log_every=args.log_every, model_config=args.model_config,
+                          half_checkpoint=args.half_checkpoint, progress=not args.no_progress)
+        summary = Trainer(cfg).fit()
+    except (TrainingError, DatasetError, ConfigError, CheckpointError) as error:
+        print(f"pssnet train: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    val = summary["last_validation"]
+    print(f"done: {summary['steps']} steps, {summary['elapsed_s'] / 60:.1f} min ({summary['stopped_by']}), "
+          f"{summary['precision']} on {summary['device']}; last validation: bce {val['val_bce']:.4f}, "
+          f"IoU {val['val_iou']:.3f}, best-acc {val['val_best_acc_mm']:.2f} mm; checkpoints in {args.out}")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    try:
+        path = export_checkpoint(args.src, args.dst, half=not args.fp32,
+                                 inference_only=not args.keep_training_modules)
+        read_checkpoint(path)
+    except CheckpointError as error:
+        print(f"pssnet export-model: error: {error}", file=sys.stderr)
+        return 2
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Standalone entry (``python -m pssnet_core.training.cli train ...``): works on machines without the
+    dataset/evaluation dependencies (open3d, trimesh, cv2) that the full ``pssnet`` CLI imports."""
+    parser = argparse.ArgumentParser(prog="python -m pssnet_core.training.cli")
+    register(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,437 @@
+"""Training loop for every registry model: epochs over a shard dataset, validation, logs, checkpoints.
+
+Output directory::
+
+    last.pt            full state (weights, optimisers, RNG, position in the epoch): ``--resume`` continues it
+    best.pt            weights of the best validation ``best_metric`` so far (no optimiser state)
+    train_log.csv      averaged loss terms every ``log_every`` steps
+    val_log.csv        validation: val_bce (mean per-voxel BCE of the posterior-mean completion), val_iou
+                       (IoU at 0.5), val_best_acc_mm (quick best accuracy: min over ``val_num_samples``
+                       samples of the chamfer distance to the ground truth, mean over ``val_slice`` inputs)
+    loss_curves.png    both logs plotted
+    model_config.yaml, train_config.yaml, summary.json
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+from scipy.spatial import cKDTree
+from tqdm import tqdm
+
+from pssnet_core.data.store import GRID_KEYS, TRAINING_KEYS, DatasetReader
+from pssnet_core.models.base import CompletionModel, StepContext, fast_dtype
+from pssnet_core.models.config import ModelConfig, config_from_dict
+from pssnet_core.models.registry import default_config, get_model_class
+from pssnet_core.training.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
+from pssnet_core.training.logs import TRAIN_LOG, VAL_LOG, CsvLog, plot_curves, truncate_after_step
+
+BEST_METRICS = {"val_bce": min, "val_iou": max, "val_best_acc_mm": min}
+
+
+class TrainingError(ValueError):
+    """Training cannot start or continue (bad arguments, mismatching data or checkpoint)."""
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run needs; the CLI fills it from its arguments.
+
+    Attributes:
+        model: registry name.
+        data: training dataset directory.
+        out: output directory.
+        val_data: validation dataset; None validates on the first ``val_max_samples`` training samples.
+        epochs: passes over the training data.
+        max_minutes: wall-clock budget (training + validation); None = no limit.
+        batch_size: samples per step (paper: 16).
+        lr: learning rate of the main optimiser (paper: Adam 1e-3).
+        device: "cpu" or "cuda" (or "cuda:1").
+        precision: "auto" (bf16 autocast where the hardware runs it natively, else fp32), "fp32", "bf16".
+        threads: torch CPU threads (None: torch's default).
+        seed: seeds weights, noise and shuffling.
+        resume: continue from ``out/last.pt``.
+        val_every: validate every this many steps; 0 = at the end of every epoch.
+        val_max_samples: validation loss and IoU on at most this many validation samples.
+        val_slice: inputs used for the quick best-accuracy.
+        val_num_samples: samples per input for the quick best-accuracy.
+        best_metric: which validation number selects best.pt.
+        log_every: steps per train_log.csv row.
+        model_config: YAML with model config overrides (e.g. channels, latent_dim, flow_lr).
+        half_checkpoint: store best.pt in float16 (last.pt stays float32 to resume exactly).
+        progress: show tqdm bars.
+    """
+
+    model: str
+    data: str
+    out: str
+    val_data: str | None = None
+    epochs: int = 10
+    max_minutes: float | None = None
+    batch_size: int = 16
+    lr: float = 1e-3
+    device: str = "cpu"
+    precision: str = "auto"
+    threads: int | None = None
+    seed: int = 0
+    resume: bool = False
+    val_every: int = 0
+    val_max_samples: int = 512
+    val_slice: int = 16
+    val_num_samples: int = 8
+    best_metric: str = "val_bce"
+    log_every: int = 10
+    model_config: str | None = None
+    half_checkpoint: bool = False
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
+            raise TrainingError("epochs and batch_size must be >= 1 and lr > 0")
+        if self.precision not in ("auto", "fp32", "bf16"):
+            raise TrainingError(f"precision must be auto, fp32 or bf16, got {self.precision!r}")
+        if self.best_metric not in BEST_METRICS:
+            raise TrainingError(f"best_metric must be one of {sorted(BEST_METRICS)}, got {self.best_metric!r}")
+        if self.max_minutes is not None and self.max_minutes <= 0:
+            raise TrainingError(f"max_minutes must be positive, got {self.max_minutes}")
+        if self.val_every < 0 or self.log_every < 1 or self.val_num_samples < 1 or self.val_slice < 0:
+            raise TrainingError("val_every >= 0, log_every >= 1, val_num_samples >= 1, val_slice >= 0")
+
+
+def resolve_context(device: str, precision: str) -> StepContext:
+    """Device + autocast dtype; bf16 requested on hardware without it is an error, "auto" falls back."""
+    try:
+        dev = torch.device(device)
+    except RuntimeError as error:
+        raise TrainingError(f"bad device {device!r}: {error}") from error
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise TrainingError("--device cuda requested but torch sees no CUDA device")
+    if dev.type not in ("cpu", "cuda"):
+        raise TrainingError(f"device must be cpu or cuda, got {device!r}")
+    fast = fast_dtype(dev)
+    if precision == "fp32":
+        return StepContext(dev, None)
+    if precision == "bf16":
+        if dev.type == "cuda" and not torch.cuda.is_bf16_supported():
+            raise TrainingError("this GPU does not support bf16; use --precision fp32")
+        return StepContext(dev, torch.bfloat16)
+    return StepContext(dev, fast)
+
+
+def batch_to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """Store batch -> model batch: ``input`` (B,2,N,N,N), ``target`` (B,1,N,N,N) float32, ``box``, ``index``."""
+    out = {"input": torch.from_numpy(np.stack([batch["known_occupied"], batch["known_free"]], 1)
+                                     .astype(np.float32)),
+           "index": torch.from_numpy(batch["index"])}
+    if "occupancy" in batch:
+        out["target"] = torch.from_numpy(batch["occupancy"][:, None].astype(np.float32))
+    if "box" in batch:
+        out["box"] = torch.from_numpy(np.asarray(batch["box"], dtype=np.float32))
+    return out
+
+
+def prefetch(iterator: Iterator[Any], depth: int = 2) -> Iterator[Any]:
+    """Runs ``iterator`` in a background thread (shard decoding overlaps compute); re-raises its errors."""
+    items: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def work() -> None:
+        try:
+            for item in iterator:
+                while not stop.is_set():
+                    try:
+                        items.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            items.put(done)
+        except BaseException as error:  # handed to the consumer
+            items.put(error)
+
+    thread = threading.Thread(target=work, daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = items.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+
+
+def chamfer_mm(a: np.ndarray, b: np.ndarray, voxel_size: float) -> float:
+    """Symmetric chamfer distance between two sets of voxel indices (M,3)/(K,3), in millimetres:
+    0.5 * (mean nearest distance a->b + mean nearest distance b->a) between voxel centres; inf if one is empty."""
+    if len(a) == 0 or len(b) == 0:
+        return math.inf
+    d_ab, _ = cKDTree(b).query(a)
+    d_ba, _ = cKDTree(a).query(b)
+    return 0.5 * (float(d_ab.mean()) + float(d_ba.mean())) * voxel_size * 1000.0
+
+
+@torch.inference_mode()
+def validate(model: CompletionModel, reader: DatasetReader, ctx: StepContext, max_samples: int,
+             slice_size: int, num_samples: int, batch_size: int, seed: int) -> dict[str, float]:
+    """Validation numbers (see the module docstring). Leaves the model in train mode."""
+    model.eval()
+    try:
+        indices = list(range(min(len(reader), max_samples)))
+        bce_sum, iou_sum, count = 0.0, 0.0, 0
+        for batch in reader.iter_batches(batch_size, shuffle=False, keys=GRID_KEYS, indices=indices):
+            t = batch_to_tensors(batch)
+            with ctx.autocast():
+                logits = model.reconstruct(t["input"]).float()
+            target = t["target"].to(logits.device)
+            bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, target, reduction="none")
+            bce_sum += float(bce.flatten(1).mean(1).sum())
+            pred, gt = (logits > 0).flatten(1), target.bool().flatten(1)
+            inter, union = (pred & gt).sum(1).float(), (pred | gt).sum(1).float()
+            iou_sum += float(torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union)).sum())
+            count += len(logits)
+        best = []
+        if slice_size:
+            generator = torch.Generator().manual_seed(seed)
+            for batch in reader.iter_batches(1, shuffle=False, keys=GRID_KEYS,
+                                             indices=indices[:slice_size]):
+                t = batch_to_tensors(batch)
+                with ctx.autocast():
+                    probs = model.sample(t["input"], num_samples, generator=generator)
+                gt = np.argwhere(batch["occupancy"][0])
+                occupied = (probs[:, 0] > 0.5).cpu().numpy()
+                best.append(min(chamfer_mm(np.argwhere(o), gt, reader.voxel_size) for o in occupied))
+        finite = [b for b in best if math.isfinite(b)]
+        return {"val_bce": bce_sum / max(count, 1), "val_iou": iou_sum / max(count, 1),
+                "val_best_acc_mm": float(np.mean(finite)) if finite else math.nan, "val_n": float(count)}
+    finally:
+        model.train()
+
+
+class Trainer:
+    """Runs one training job described by a :class:`TrainConfig`."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+        self.out = Path(cfg.out)
+        self.ctx = resolve_context(cfg.device, cfg.precision)
+        self.train_reader = DatasetReader(cfg.data)
+        self.val_reader = DatasetReader(cfg.val_data) if cfg.val_data else self.train_reader
+        if self.val_reader.grid_size != self.train_reader.grid_size:
+            raise TrainingError(f"validation grid {self.val_reader.grid_size} != training grid "
+                                f"{self.train_reader.grid_size}")
+        if len(self.train_reader) < 2:
+            raise TrainingError(f"{cfg.data} has {len(self.train_reader)} samples; need at least 2")
+
+    # ------------------------------------------------------------------------------------------ setup
+    def _model_config(self) -> ModelConfig:
+        overrides: dict[str, Any] = _read_yaml(self.cfg.model_config) if self.cfg.model_config else {}
+        if overrides.get("model", self.cfg.model) != self.cfg.model:
+            raise TrainingError(f"{self.cfg.model_config} is a config for {overrides['model']!r}, "
+                                f"not --model {self.cfg.model!r}")
+        overrides.pop("model", None)
+        grid = self.train_reader.grid_size
+        if overrides.get("grid_size", grid) != grid:
+            raise TrainingError(f"model config grid_size {overrides['grid_size']} != dataset grid {grid}")
+        overrides["grid_size"] = grid
+        get_model_class(self.cfg.model)  # clear error for an unknown name
+        return default_config(self.cfg.model, **overrides)
+
+    def _box_source(self) -> Callable[[int], Iterator[torch.Tensor]]:
+        reader, seed = self.train_reader, self.cfg.seed
+
+        def boxes(batch_size: int) -> Iterator[torch.Tensor]:
+            batch_size = min(batch_size, len(reader))
+            epoch = 0
+            while True:
+                for batch in reader.iter_batches(batch_size, shuffle=True, seed=seed + 7919 * (epoch + 1),
+                                                 drop_last=True, keys=("box",)):
+                    yield torch.from_numpy(np.asarray(batch["box"], dtype=np.float32))
+                epoch += 1
+
+        return boxes
+
+    # -------------------------------------------------------------------------------------------- run
+    def fit(self) -> dict[str, Any]:
+        """Trains; returns the summary also written to ``summary.json``."""
+        cfg, ctx = self.cfg, self.ctx
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
+        self.out.mkdir(parents=True, exist_ok=True)
+        last_path = self.out / "last.pt"
+        state: dict[str, Any] = {"epoch": 0, "batch_in_epoch": 0, "step": 0, "elapsed_s": 0.0, "best": None}
+        opt_states: dict[str, Any] | None = None
+        if cfg.resume and last_path.exists():
+            model, config, extra = load_checkpoint(last_path)
+            if extra.get("inference_only"):
+                raise TrainingError(f"{last_path} is an inference-only export; it cannot resume training")
+            if config.model != cfg.model:
+                raise TrainingError(f"{last_path} holds a {config.model!r} model, not {cfg.model!r}")
+            state.update(extra.get("train_state", {}))
+            opt_states = extra.get("optimizers")
+            if "rng" in extra:
+                torch.set_rng_state(extra["rng"])
+            truncate_after_step(self.out / TRAIN_LOG, state["step"])
+            truncate_after_step(self.out / VAL_LOG, state["step"])
+        else:
+            if cfg.resume:
+                tqdm.write(f"--resume: no {last_path}; starting a new run")
+            torch.manual_seed(cfg.seed)
+            config = self._model_config()
+            model = get_model_class(config.model)(config)
+            for name in ("train_log.csv", "val_log.csv"):
+                (self.out / name).unlink(missing_ok=True)
+        if config.grid_size != self.train_reader.grid_size:
+            raise TrainingError(f"model grid {config.grid_size} != dataset grid {self.train_reader.grid_size}")
+        config.to_yaml(self.out / "model_config.yaml")
+        (self.out / "train_config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+
+        model.to(ctx.device).to_fast_layout().train()
+        optimizers = model.make_optimizers(cfg.lr)
+        if opt_states:
+            for name, opt in optimizers.items():
+                if name in opt_states:
+                    opt.load_state_dict(opt_states[name])
+
+        if state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0:
+            t0 = time.perf_counter()
+            pre = model.pretrain(self._box_source(), ctx)
+            if pre:
+                tqdm.write(f"pretrain: {pre} in {time.perf_counter() - t0:.1f} s")
+                state["pretrain"] = pre
+
+        train_log, val_log = CsvLog(self.out / TRAIN_LOG), CsvLog(self.out / VAL_LOG)
+        better = BEST_METRICS[cfg.best_metric]
+        steps_per_epoch = len(self.train_reader) // cfg.batch_size if len(self.train_reader) > cfg.batch_size \
+            else 1
+        drop_last = len(self.train_reader) > cfg.batch_size
+        start = time.perf_counter() - state["elapsed_s"]
+        invocation_start = time.perf_counter()  # --max-minutes limits this invocation (also on --resume)
+        budget_s = cfg.max_minutes * 60 if cfg.max_minutes else math.inf
+        last_val: dict[str, float] = {}
+        stopped_by = "epochs"
+
+        def elapsed() -> float:
+            return time.perf_counter() - start
+
+        saved_at = [-1]
+
+        def checkpoint(candidate: dict[str, float] | None) -> None:
+            state["elapsed_s"] = elapsed()
+            improved = False
+            if candidate is not None and math.isfinite(value := candidate[cfg.best_metric]):
+                best = state["best"]
+                improved = best is None or (value < best if better is min else value > best)
+                if improved:
+                    state["best"] = value
+            extra = {"train_state": dict(state), "train_config": dataclasses.asdict(cfg),
+                     "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+                     "rng": torch.get_rng_state()}
+            save_checkpoint(last_path, model, config, extra)
+            saved_at[0] = state["step"]
+            if improved:
+                meta = {"train_state": dict(state), "train_config": dataclasses.asdict(cfg), "val": candidate,
+                        "data": str(cfg.data), "precision": ctx.precision}
+                save_checkpoint(self.out / "best.pt", model, config, meta, half=cfg.half_checkpoint)
+
+        def run_validation() -> dict[str, float]:
+            t0 = time.perf_counter()
+            result = validate(model, self.val_reader, ctx, cfg.val_max_samples, cfg.val_slice,
+                              cfg.val_num_samples, max(cfg.batch_size, 8), cfg.seed)
+            row = {"step": state["step"], "epoch": state["epoch"], "elapsed_s": elapsed(), **result}
+            val_log.write(row)
+            tqdm.write(f"[val] step {state['step']} epoch {state['epoch']}: bce {result['val_bce']:.4f} "
+                       f"iou {result['val_iou']:.3f} best-acc {result['val_best_acc_mm']:.2f} mm "
+                       f"({time.perf_counter() - t0:.1f} s)")
+            checkpoint(result)
+            plot_curves(self.out, title=f"{config.model} {config.grid_size}^3")
+            return result
+
+        try:
+            while state["epoch"] < cfg.epochs and stopped_by == "epochs":
+                epoch = state["epoch"]
+                batches = self.train_reader.iter_batches(cfg.batch_size, shuffle=True, seed=cfg.seed + epoch,
+                                                         drop_last=drop_last, keys=TRAINING_KEYS)
+                bar = tqdm(total=steps_per_epoch, initial=state["batch_in_epoch"], desc=f"epoch {epoch}",
+                           disable=not cfg.progress, dynamic_ncols=True, leave=False)
+                sums: dict[str, float] = {}
+                n_logged, t_log = 0, time.perf_counter()
+                for i, batch in enumerate(prefetch(map(batch_to_tensors, batches))):
+                    if i < state["batch_in_epoch"]:
+                        continue  # resuming mid-epoch: same shuffle, skip what was done
+                    if len(batch["index"]) < 2:
+                        continue  # batch norm (flow) needs two samples
+                    losses = model.training_step(batch, optimizers, ctx)
+                    if not all(math.isfinite(v) for v in losses.values()):
+                        raise TrainingError(f"non-finite loss at step {state['step']}: {losses}; "
+                                            f"lower --lr or use --precision fp32")
+                    state["step"] += 1
+                    state["batch_in_epoch"] = i + 1
+                    for k, v in losses.items():
+                        sums[k] = sums.get(k, 0.0) + v
+                    n_logged += 1
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{losses['loss']:.1f}", rec=f"{losses['rec']:.1f}")
+                    if state["step"] % cfg.log_every == 0:
+                        now = time.perf_counter()
+                        train_log.write({"step": state["step"], "epoch": epoch, "elapsed_s": elapsed(),
+                                         "samples_per_s": n_logged * cfg.batch_size / (now - t_log),
+                                         **{k: v / n_logged for k, v in sums.items()}})
+                        sums, n_logged, t_log = {}, 0, now
+                    if cfg.val_every and state["step"] % cfg.val_every == 0:
+                        last_val = run_validation()
+                    if time.perf_counter() - invocation_start > budget_s:
+                        stopped_by = "max_minutes"
+                        break
+                bar.close()
+                if stopped_by == "epochs":
+                    state["epoch"] += 1
+                    state["batch_in_epoch"] = 0
+                if not cfg.val_every or stopped_by != "epochs":
+                    last_val = run_validation()
+        except KeyboardInterrupt:
+            tqdm.write("interrupted: saving last.pt (continue with --resume)")
+            checkpoint(None)
+            raise
+        if not last_val:
+            last_val = run_validation()
+        if saved_at[0] != state["step"]:
+            checkpoint(None)
+        summary = {"model": config.model, "grid_size": config.grid_size, "steps": state["step"],
+                   "epochs_completed": state["epoch"], "elapsed_s": elapsed(), "stopped_by": stopped_by,
+                   "precision": ctx.precision, "device": str(ctx.device), "best_" + cfg.best_metric: state["best"],
+                   "last_validation": last_val, "pretrain": state.get("pretrain"),
+                   "train_samples": len(self.train_reader), "data": cfg.data, "val_data": cfg.val_data}
+        (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
+        plot_curves(self.out, title=f"{config.model} {config.grid_size}^3")
+        return summary
+
+
+def _read_yaml(path: str) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(Path(path).read_text()) or {}
+    except (OSError, yaml.YAMLError) as error:
+        raise TrainingError(f"cannot read model config {path}: {error}") from error
+    if not isinstance(data, dict):
+        raise TrainingError(f"{path} must hold a mapping of model config fields")
+    return data
+
+
+__all__ = ["BEST_METRICS", "CheckpointError", "TrainConfig", "Trainer", "TrainingError", "chamfer_mm",
+           "config_from_dict", "read_checkpoint", "resolve_context", "validate"]

@@ -1,0 +1,106 @@
+"""The inference facade: checkpoint in, seeded completions out (tiny 16^3 models)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_models_helpers import TINY_BY_MODEL, cuboid_sample
+
+import pssnet_core.inference as inference
+from pssnet_core.inference import CheckpointError, Completer, CompletionInputError, CompletionResult
+from pssnet_core.models import build_model, default_config
+from pssnet_core.training import save_checkpoint
+
+GRID = 16
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def checkpoint(tmp_path, name="pssnet"):
+    torch.manual_seed(0)
+    model = build_model(default_config(name, grid_size=GRID, **TINY_BY_MODEL[name]))
+    if hasattr(model, "encoder"):
+        with torch.no_grad():  # spread the posterior so that samples visibly differ
+            model.encoder.dense.bias[model.latent_dim:] = 1.0
+    return save_checkpoint(tmp_path / f"{name}.pt", model)
+
+
+class FakeObservation:
+    """Duck-typed stand-in for pssnet_core.geometry.Observation."""
+
+    def __init__(self, seed=0):
+        s = cuboid_sample(np.random.default_rng(seed), GRID)
+        self.known_occupied, self.known_free = s["known_occupied"], s["known_free"]
+
+    def network_input(self):
+        return np.stack([self.known_occupied, self.known_free]).astype(np.float32)
+
+
+def test_complete_shapes_dtypes_and_threshold(tmp_path):
+    completer = Completer.from_checkpoint(checkpoint(tmp_path), threads=1)
+    result = completer.complete(FakeObservation(), num_samples=5, seed=1)
+    assert isinstance(result, CompletionResult)
+    assert result.probabilities.shape == (5, GRID, GRID, GRID) and result.probabilities.dtype == np.float32
+    assert result.occupancy.dtype == bool and np.array_equal(result.occupancy, result.probabilities > 0.5)
+    assert result.grid_size == GRID and result.model == "pssnet" and result.num_samples == 5
+    same = completer.complete(FakeObservation().network_input(), num_samples=5, seed=1)
+    np.testing.assert_array_equal(same.probabilities, result.probabilities)
+
+
+def test_seeds(tmp_path):
+    completer = Completer.from_checkpoint(checkpoint(tmp_path))
+    obs = FakeObservation()
+    a = completer.complete(obs, 4, seed=0).probabilities
+    b = completer.complete(obs, 4, seed=0).probabilities
+    c = completer.complete(obs, 4, seed=1).probabilities
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(a - c).max() > 1e-3
+    assert np.abs(a[0] - a[1]).max() > 1e-3, "samples of one call must differ"
+
+
+def test_fast_path_close_to_fp32(tmp_path):
+    path = checkpoint(tmp_path)
+    fast = Completer.from_checkpoint(path, fast=True)
+    ref = Completer.from_checkpoint(path, fast=False)
+    assert ref.precision == "fp32"
+    obs = FakeObservation(2)
+    diff = np.abs(fast.complete(obs, 3, seed=5).probabilities - ref.complete(obs, 3, seed=5).probabilities)
+    assert diff.max() < 0.05
+
+
+def test_recgan_repeats_its_single_completion(tmp_path):
+    completer = Completer.from_checkpoint(checkpoint(tmp_path, "recgan"))
+    probs = completer.complete(FakeObservation(), 3, seed=0).probabilities
+    assert np.array_equal(probs[0], probs[1]) and np.array_equal(probs[0], probs[2])
+
+
+def test_bad_inputs(tmp_path):
+    completer = Completer.from_checkpoint(checkpoint(tmp_path))
+    with pytest.raises(CompletionInputError, match=r"\(2, 16, 16, 16\)"):
+        completer.complete(np.zeros((2, 32, 32, 32), np.float32), 2)
+    with pytest.raises(CompletionInputError, match="num_samples"):
+        completer.complete(FakeObservation(), 0)
+    with pytest.raises(CompletionInputError, match="NaN"):
+        completer.complete(np.full((2, GRID, GRID, GRID), np.nan, np.float32), 2)
+    with pytest.raises(CompletionInputError, match="Observation"):
+        completer.complete([1, 2, 3], 2)
+
+
+def test_missing_default_checkpoint_says_how_to_train(tmp_path, monkeypatch):
+    monkeypatch.setattr(inference, "DEFAULT_CHECKPOINT", tmp_path / "absent.pt")
+    with pytest.raises(CheckpointError, match="pssnet train"):
+        Completer.from_checkpoint(None)
+    with pytest.raises(CheckpointError, match="no checkpoint file"):
+        Completer.from_checkpoint(tmp_path / "other.pt")
+
+
+def test_default_checkpoint_path_is_inside_the_package():
+    assert inference.default_checkpoint_path().parts[-3:] == ("pssnet_core", "checkpoints",
+                                                              "default_pssnet_32.pt")

@@ -1,0 +1,257 @@
+"""Model registry, configs, networks, flow and the PSSNet box replacement (tiny 16^3 configs, seconds)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_models_helpers import TINY_BY_MODEL, cuboid_sample
+
+from pssnet_core.models import (
+    ConfigError,
+    ModelInputError,
+    PSSNetConfig,
+    StepContext,
+    build_model,
+    config_from_dict,
+    default_config,
+    get_model_class,
+    model_names,
+)
+from pssnet_core.models.base import bce_sum
+from pssnet_core.models.flow import RealNVP
+
+GRID = 16
+CPU = StepContext(torch.device("cpu"))
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def tiny(name: str, **kw):
+    torch.manual_seed(0)
+    return build_model(default_config(name, grid_size=GRID, **{**TINY_BY_MODEL[name], **kw}))
+
+
+def batch(num: int = 4, seed: int = 0) -> dict[str, torch.Tensor]:
+    rng = np.random.default_rng(seed)
+    samples = [cuboid_sample(rng, GRID) for _ in range(num)]
+    stack = lambda k: np.stack([s[k] for s in samples])  # noqa: E731
+    return {"input": torch.from_numpy(np.stack([stack("known_occupied"), stack("known_free")], 1)).float(),
+            "target": torch.from_numpy(stack("occupancy")[:, None]).float(),
+            "box": torch.from_numpy(stack("box")).float()}
+
+
+def test_registry_names_and_errors():
+    assert model_names() == ["pssnet", "recgan", "vae", "vae_gan"]
+    for name in model_names():
+        assert get_model_class(name).name == name
+    with pytest.raises(ConfigError, match="unknown model"):
+        get_model_class("gan3000")
+
+
+@pytest.mark.parametrize("name", ["pssnet", "vae", "vae_gan", "recgan"])
+def test_config_round_trip(name):
+    config = default_config(name, grid_size=64)
+    assert config_from_dict(config.to_dict()) == config
+    import yaml
+    assert config_from_dict(yaml.safe_load(config.to_yaml())) == config
+
+
+def test_config_defaults_follow_the_paper():
+    c = default_config("pssnet", grid_size=64)
+    assert (c.latent_dim, c.box_dim, c.channels, c.bottleneck) == (200, 24, [64, 128, 256, 512], 4)
+    assert (c.flow_couplings, c.flow_hidden, c.flow_hidden_layers, c.flow_batchnorm_every) == (8, 512, 2, 2)
+    assert c.box_offset == c.box_scale == 32.0
+    assert default_config("pssnet", grid_size=32).bottleneck == 2
+
+
+def test_bad_configs_are_rejected():
+    with pytest.raises(ConfigError, match="multiple"):
+        PSSNetConfig(grid_size=24)
+    with pytest.raises(ConfigError, match="box_dim"):
+        PSSNetConfig(latent_dim=20, box_dim=24)
+    with pytest.raises(ConfigError, match="unknown fields"):
+        config_from_dict({"model": "vae", "latnt_dim": 3})
+    with pytest.raises(ConfigError, match="'model' key"):
+        config_from_dict({"grid_size": 32})
+
+
+@pytest.mark.parametrize("name", ["pssnet", "vae", "vae_gan", "recgan"])
+def test_shapes_and_dtypes(name):
+    model = tiny(name).eval()
+    x = batch(2)["input"]
+    with torch.inference_mode():
+        probs = model.sample(x[:1], 5, generator=torch.Generator().manual_seed(0))
+        multi = model.sample(x, 3)
+        logits = model.reconstruct(x)
+    assert probs.shape == (5, 1, GRID, GRID, GRID) and probs.dtype == torch.float32
+    assert float(probs.min()) >= 0.0 and float(probs.max()) <= 1.0
+    assert multi.shape == (6, 1, GRID, GRID, GRID)
+    assert logits.shape == (2, 1, GRID, GRID, GRID)
+
+
+def test_full_size_models_build_at_32_and_64():
+    # Real sizes (not tiny): the decoder really starts from b x b x b x 512.
+    for grid in (32, 64):
+        model = build_model(default_config("pssnet", grid_size=grid)).eval()
+        with torch.inference_mode():
+            out = model.sample(torch.zeros(1, 2, grid, grid, grid), 2)
+        assert out.shape == (2, 1, grid, grid, grid)
+        assert model.decoder.dense.out_features == 512 * (grid // 16) ** 3
+
+
+def test_bad_input_shape_raises():
+    model = tiny("vae")
+    with pytest.raises(ModelInputError, match=r"\(B, 2, 16, 16, 16\)"):
+        model.sample(torch.zeros(1, 1, GRID, GRID, GRID), 2)
+    with pytest.raises(ModelInputError, match="num_samples"):
+        model.sample(torch.zeros(1, 2, GRID, GRID, GRID), 0)
+
+
+def _random_flow(dim: int = 6) -> RealNVP:
+    torch.manual_seed(1)
+    flow = RealNVP(dim, couplings=4, hidden=16, hidden_layers=2, batchnorm_every=2).double()
+    with torch.no_grad():
+        for p in flow.parameters():
+            p.add_(0.3 * torch.randn_like(p))  # leave the identity initialisation
+    flow.train()
+    flow(torch.randn(64, dim, dtype=torch.float64) * 2 + 1)  # running statistics away from (0, 1)
+    return flow.eval()
+
+
+def test_flow_is_invertible():
+    flow = _random_flow()
+    x = torch.randn(10, 6, dtype=torch.float64)
+    z, _ = flow(x)
+    assert not torch.allclose(z, x)
+    torch.testing.assert_close(flow.inverse(z), x, rtol=1e-9, atol=1e-9)
+
+
+def test_flow_log_det_matches_autograd_jacobian():
+    flow = _random_flow()
+    for x in torch.randn(3, 6, dtype=torch.float64):
+        jac = torch.autograd.functional.jacobian(lambda v: flow(v[None])[0][0], x)
+        _, log_det = flow(x[None])
+        assert math.isclose(float(log_det[0].detach()), float(torch.slogdet(jac).logabsdet), rel_tol=1e-9, abs_tol=1e-9)
+
+
+def test_flow_has_batch_norm_between_every_other_coupling():
+    flow = RealNVP(24)
+    kinds = [type(layer).__name__ for layer in flow.layers]
+    assert kinds.count("AffineCoupling") == 8 and kinds.count("BatchNormBijection") == 3
+    assert kinds[2] == kinds[5] == kinds[8] == "BatchNormBijection"
+
+
+def _capture_decoder_input(model):
+    seen = []
+    handle = model.decoder.register_forward_pre_hook(lambda _m, args: seen.append(args[0].detach().clone()))
+    return seen, handle
+
+
+def test_training_feeds_flow_of_box_to_the_decoder():
+    model = tiny("pssnet").train()
+    opts = model.make_optimizers(1e-3)
+    b = batch(4)
+    seen, handle = _capture_decoder_input(model)
+    model.training_step(b, opts, CPU)
+    handle.remove()
+    k = model.box_dim
+    expected = model.embed_box(model.normalise_box(b["box"]))
+    torch.testing.assert_close(seen[0][:, :k], expected)
+    # The rest of the latent is the encoder's sample, not the box code.
+    with torch.no_grad():
+        mu, _ = model.encode(b["input"])
+    assert not torch.allclose(seen[0][:, :k], mu[:, :k], atol=1e-3)
+    # A different box changes the decoder input.
+    b2 = dict(b, box=b["box"] + 3.0)
+    seen2, handle = _capture_decoder_input(model)
+    model.training_step(b2, opts, CPU)
+    handle.remove()
+    assert not torch.allclose(seen2[0][:, :k], seen[0][:, :k], atol=1e-2)
+
+
+def test_sampling_uses_the_posterior_not_the_flow():
+    model = tiny("pssnet").eval()
+    b = batch(1)
+    called = []
+    handle_flow = model.flow.register_forward_hook(lambda *a: called.append(1))
+    seen, handle = _capture_decoder_input(model)
+    with torch.inference_mode():
+        model.sample(b["input"], 6, generator=torch.Generator().manual_seed(3))
+        mu, logvar = model.encode(b["input"])
+    handle.remove()
+    handle_flow.remove()
+    assert not called, "sampling must not run the flow"
+    eps = torch.randn(6, model.latent_dim, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(seen[0], mu + torch.exp(0.5 * logvar) * eps)
+
+
+@pytest.mark.parametrize("name", ["pssnet", "vae", "vae_gan", "recgan"])
+def test_losses_finite_and_decreasing_on_tiny_overfit(name):
+    model = tiny(name).train()
+    opts = model.make_optimizers(3e-3)
+    b = batch(8)
+    if name == "pssnet":
+        model.pretrain(lambda size: iter([b["box"]] * 100), CPU)
+    history = [model.training_step(b, opts, CPU) for _ in range(40)]
+    for losses in history:
+        assert all(math.isfinite(v) for v in losses.values()), losses
+    first = np.mean([h["rec"] for h in history[:3]])
+    last = np.mean([h["rec"] for h in history[-3:]])
+    assert last < 0.7 * first, (first, last)
+    expected = {"pssnet": {"loss", "rec", "kl", "flow", "flow_nll"}, "vae": {"loss", "rec", "kl"},
+                "vae_gan": {"loss", "rec", "kl", "adv", "disc"}, "recgan": {"loss", "rec", "adv", "disc"}}
+    assert set(history[0]) == expected[name]
+
+
+def test_flow_pretraining_lowers_box_nll():
+    model = tiny("pssnet", flow_pretrain_steps=60, flow_pretrain_batch=16, flow_pretrain_lr=1e-3)
+    rng = np.random.default_rng(0)
+    boxes = torch.from_numpy(np.stack([cuboid_sample(rng, GRID)["box"] for _ in range(64)]))
+    with torch.no_grad():
+        model.flow.train()
+        before = float(model.flow_nll(model.normalise_box(boxes)))
+    out = model.pretrain(lambda size: (boxes[torch.randperm(64)[:size]] for _ in iter(int, 1)), CPU)
+    with torch.no_grad():
+        after = float(model.flow_nll(model.normalise_box(boxes)))
+    assert out["flow_pretrain_steps"] == 60
+    assert after < before - 5.0, (before, after)
+
+
+def test_recgan_sampling_is_deterministic_repetition():
+    model = tiny("recgan").eval()
+    with torch.inference_mode():
+        out = model.sample(batch(1)["input"], 4, generator=torch.Generator().manual_seed(0))
+    assert all(torch.equal(out[0], out[i]) for i in range(4))
+
+
+def test_weighted_bce_matches_formula():
+    logits = torch.tensor([[-2.0, 0.5, 3.0]])
+    target = torch.tensor([[1.0, 0.0, 1.0]])
+    p = torch.sigmoid(logits)
+    expected = -(0.85 * target * torch.log(p) + 0.15 * (1 - target) * torch.log(1 - p)).sum()
+    torch.testing.assert_close(bce_sum(logits, target, pos_weight=0.85), expected)
+    plain = torch.nn.functional.binary_cross_entropy_with_logits(logits, target, reduction="sum")
+    torch.testing.assert_close(bce_sum(logits, target), plain)
+
+
+def test_channels_last_bf16_matches_fp32_closely():
+    model = tiny("vae").eval()
+    x = batch(1)["input"]
+    g = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    with torch.inference_mode():
+        ref = model.sample(x, 4, generator=g())
+        model.to_fast_layout()
+        assert model.uses_channels_last()
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            fast = model.sample(x, 4, generator=g())
+    assert fast.dtype == torch.float32
+    assert float((fast - ref).abs().max()) < 0.05

@@ -1,0 +1,46 @@
+"""Shared helpers for the model, training and inference tests: tiny configs and a tiny dataset.
+
+(Named test_models_* so it belongs to the models area; it holds no tests itself.)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pssnet_core.data.store import DatasetWriter
+
+TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32}
+TINY_PSSNET = {**TINY, "flow_hidden": 32, "flow_couplings": 4, "flow_pretrain_steps": 5,
+               "flow_pretrain_batch": 8}
+TINY_GAN = {"channels": [4, 8, 8, 16], "latent_dim": 32, "disc_channels": [4, 8]}
+TINY_RECGAN = {"channels": [4, 8, 8, 16], "bottleneck_dim": 16, "disc_channels": [4, 8]}
+TINY_BY_MODEL = {"pssnet": TINY_PSSNET, "vae": TINY, "vae_gan": TINY_GAN, "recgan": TINY_RECGAN}
+
+
+def cuboid_sample(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
+    """A random axis-aligned cuboid seen from -x: occupancy, its front face, free space in front, box."""
+    lo = rng.integers(2, n // 2, size=3)
+    hi = lo + rng.integers(3, n // 2 - 1, size=3)
+    occ = np.zeros((n, n, n), dtype=bool)
+    occ[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = True
+    known_occ = np.zeros_like(occ)
+    known_occ[lo[0], lo[1]:hi[1], lo[2]:hi[2]] = True
+    known_free = np.zeros_like(occ)
+    known_free[:lo[0], lo[1]:hi[1], lo[2]:hi[2]] = True
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])],
+                       dtype=np.float32)
+    return {"known_occupied": known_occ, "known_free": known_free, "occupancy": occ,
+            "box": corners.reshape(-1)}
+
+
+def make_dataset(path: Path, num: int = 24, grid: int = 16, seed: int = 0, shard_size: int = 10) -> Path:
+    """Writes a tiny cuboid dataset with the project's DatasetWriter."""
+    rng = np.random.default_rng(seed)
+    writer = DatasetWriter(path, {"grid_size": grid, "voxel_size": 0.005, "family": "cuboids"},
+                           shard_size=shard_size)
+    for i in range(num):
+        writer.add({**cuboid_sample(rng, grid), "object_id": f"cuboid{i}"})
+    writer.close()
+    return path

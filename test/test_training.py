@@ -1,0 +1,209 @@
+"""Checkpoints, the training loop and the `pssnet train` / `pssnet export-model` commands (tiny data)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from test_models_helpers import TINY_BY_MODEL, make_dataset
+
+from pssnet_core.models import build_model, default_config
+from pssnet_core.training import (
+    CheckpointError,
+    TrainConfig,
+    Trainer,
+    TrainingError,
+    chamfer_mm,
+    export_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
+from pssnet_core.training.cli import register
+from pssnet_core.training.trainer import resolve_context
+
+GRID = 16
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("data") / "train", num=24, grid=GRID)
+
+
+def tiny_model(name="pssnet"):
+    torch.manual_seed(0)
+    return build_model(default_config(name, grid_size=GRID, **TINY_BY_MODEL[name]))
+
+
+def sample(model, seed=0):
+    x = torch.zeros(1, 2, GRID, GRID, GRID)
+    x[0, 0, 4, 4:9, 4:9] = 1
+    x[0, 1, :4, 4:9, 4:9] = 1
+    with torch.inference_mode():
+        return model.eval().sample(x, 3, generator=torch.Generator().manual_seed(seed))
+
+
+def run_cli(*argv: str) -> int:
+    parser = argparse.ArgumentParser(prog="pssnet")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(list(argv))
+    return args.func(args)
+
+
+@pytest.mark.parametrize("name", ["pssnet", "vae_gan", "recgan"])
+def test_checkpoint_round_trip_fp32(tmp_path, name):
+    model = tiny_model(name)
+    path = save_checkpoint(tmp_path / "m.pt", model, extra={"note": "hi"})
+    loaded, config, extra = load_checkpoint(path)
+    assert config == model.config and extra["note"] == "hi" and extra["storage_dtype"] == "float32"
+    assert type(loaded) is type(model)
+    for key, value in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[key], value), key
+    torch.testing.assert_close(sample(loaded), sample(model), rtol=0, atol=0)
+
+
+def test_checkpoint_fp16_and_inference_only_export(tmp_path):
+    model = tiny_model("pssnet")
+    full = save_checkpoint(tmp_path / "full.pt", model)
+    half = export_checkpoint(full, tmp_path / "half.pt")
+    assert half.stat().st_size < 0.6 * full.stat().st_size
+    loaded, _, extra = load_checkpoint(half)
+    assert extra["inference_only"] and extra["storage_dtype"] == "float16"
+    assert all(p.dtype == torch.float32 for p in loaded.parameters())
+    assert float((sample(loaded) - sample(model)).abs().max()) < 1e-2
+    # fp16 storage keeping every module also loads.
+    loaded2, _, _ = load_checkpoint(save_checkpoint(tmp_path / "h2.pt", model, half=True))
+    torch.testing.assert_close(loaded2.flow.layers[0].net[0].weight, model.flow.layers[0].net[0].weight,
+                               atol=1e-3, rtol=1e-3)
+
+
+def test_missing_and_corrupt_checkpoints_raise_clear_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="no checkpoint file.*pssnet train"):
+        load_checkpoint(tmp_path / "nope.pt")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a zip file at all" * 10)
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(garbage)
+    good = save_checkpoint(tmp_path / "good.pt", tiny_model("vae"))
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(truncated)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(CheckpointError, match="not a PSSNet-ROS checkpoint"):
+        load_checkpoint(foreign)
+    payload = torch.load(good, weights_only=True)
+    payload["config"]["channels"] = [4, 8, 8, 32]
+    mismatched = tmp_path / "mismatched.pt"
+    torch.save(payload, mismatched)
+    with pytest.raises(CheckpointError, match="do not fit|do not match"):
+        load_checkpoint(mismatched)
+
+
+def test_chamfer_mm():
+    a = np.array([[0, 0, 0]])
+    b = np.array([[0, 0, 2]])
+    assert chamfer_mm(a, b, 0.005) == pytest.approx(10.0)
+    assert chamfer_mm(a, a, 0.005) == 0.0
+    assert chamfer_mm(a, np.zeros((0, 3)), 0.005) == math.inf
+
+
+def test_precision_resolution():
+    from pssnet_core.models import cpu_has_fast_bf16
+
+    assert resolve_context("cpu", "fp32").autocast_dtype is None
+    assert resolve_context("cpu", "bf16").autocast_dtype == torch.bfloat16
+    auto = resolve_context("cpu", "auto").autocast_dtype
+    assert auto == (torch.bfloat16 if cpu_has_fast_bf16() else None)
+    if not torch.cuda.is_available():
+        with pytest.raises(TrainingError, match="CUDA"):
+            resolve_context("cuda", "auto")
+
+
+def _write_tiny_config(path, name):
+    path.write_text(yaml.safe_dump(TINY_BY_MODEL[name]))
+    return str(path)
+
+
+def test_cli_train_one_epoch_then_resume(tmp_path, dataset):
+    out = tmp_path / "run"
+    cfg = _write_tiny_config(tmp_path / "tiny.yaml", "pssnet")
+    common = ["train", "--model", "pssnet", "--data", str(dataset), "--out", str(out), "--batch-size", "8",
+              "--model-config", cfg, "--threads", "1", "--log-every", "1", "--val-slice", "2", "--no-progress"]
+    assert run_cli(*common, "--epochs", "1") == 0
+    for name in ("last.pt", "best.pt", "train_log.csv", "val_log.csv", "loss_curves.png", "summary.json",
+                 "model_config.yaml"):
+        assert (out / name).exists(), name
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == [1, 2, 3]
+    assert {"loss", "rec", "kl", "flow", "flow_nll"} <= set(rows[0])
+    val = list(csv.DictReader(open(out / "val_log.csv")))
+    assert len(val) == 1 and 0.0 <= float(val[0]["val_iou"]) <= 1.0 and float(val[0]["val_bce"]) > 0
+    model, config, extra = load_checkpoint(out / "last.pt")
+    assert config.channels == [4, 8, 8, 16] and extra["train_state"]["epoch"] == 1
+    assert set(extra["optimizers"]) == {"main", "flow"}
+
+    assert run_cli(*common, "--epochs", "2", "--resume") == 0
+    rows = list(csv.DictReader(open(out / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4, 5, 6]
+    _, _, extra = load_checkpoint(out / "last.pt")
+    assert extra["train_state"]["epoch"] == 2 and extra["train_state"]["step"] == 6
+
+
+@pytest.mark.parametrize("name", ["vae", "vae_gan", "recgan"])
+def test_trainer_runs_every_model(tmp_path, dataset, name):
+    summary = Trainer(TrainConfig(model=name, data=str(dataset), out=str(tmp_path / name), epochs=1,
+                                  batch_size=8, model_config=_write_tiny_config(tmp_path / "c.yaml", name),
+                                  progress=False, val_slice=1, precision="fp32")).fit()
+    assert summary["steps"] == 3 and summary["stopped_by"] == "epochs"
+    assert math.isfinite(summary["last_validation"]["val_bce"])
+
+
+def test_max_minutes_stops_and_saves(tmp_path, dataset):
+    summary = Trainer(TrainConfig(model="vae", data=str(dataset), out=str(tmp_path / "r"), epochs=50,
+                                  batch_size=4, max_minutes=1e-6, val_slice=0, progress=False,
+                                  model_config=_write_tiny_config(tmp_path / "c.yaml", "vae"))).fit()
+    assert summary["stopped_by"] == "max_minutes" and summary["steps"] == 1
+    assert (tmp_path / "r" / "last.pt").exists()
+
+
+def test_train_errors_are_clear(tmp_path, dataset, capsys):
+    assert run_cli("train", "--model", "vae", "--data", str(tmp_path / "none"), "--out", str(tmp_path)) == 2
+    assert "index.json is missing" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("grid_size: 32\n")
+    assert run_cli("train", "--model", "vae", "--data", str(dataset), "--out", str(tmp_path / "o"),
+                   "--model-config", str(bad)) == 2
+    assert "grid_size 32 != dataset grid 16" in capsys.readouterr().err
+
+
+def test_cli_export_model(tmp_path):
+    src = save_checkpoint(tmp_path / "best.pt", tiny_model("pssnet"))
+    assert run_cli("export-model", str(src), str(tmp_path / "ship.pt")) == 0
+    _, _, extra = load_checkpoint(tmp_path / "ship.pt")
+    assert extra["inference_only"] and extra["storage_dtype"] == "float16"
+    assert run_cli("export-model", str(tmp_path / "missing.pt"), str(tmp_path / "x.pt")) == 2
+
+
+def test_training_inference_packages_import_without_open3d_trimesh_cv2_rclpy():
+    code = ("import sys; import pssnet_core.models, pssnet_core.training, pssnet_core.training.cli, "
+            "pssnet_core.inference, pssnet_core.data.store; "
+            "bad = [m for m in ('open3d', 'trimesh', 'manifold3d', 'cv2', 'rclpy') if m in sys.modules]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
