@@ -1,0 +1,311 @@
+"""Grasp scoring on hand-built grids: gripper config, widths, collisions, support plane, ranking, poses."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pssnet_core.geometry import GridPose
+from pssnet_core.grasps import (
+    GraspCandidates,
+    GraspConfig,
+    GraspError,
+    GripperConfig,
+    estimate_support_height,
+    generate_candidates,
+    matrix_to_position_quaternion,
+    plan_grasps,
+    plot_grasps,
+    score_grasps,
+    single_completion_choice,
+)
+
+N = 32
+VOXEL = 0.00625  # 0.2 m grid: the default gripper opens 12.8 voxels
+CONFIG = GraspConfig()
+CLEAR = CONFIG.clearance / VOXEL
+FL = CONFIG.gripper.finger_length / VOXEL
+FT = CONFIG.gripper.finger_thickness / VOXEL
+
+
+def identity_pose(size: int = N, voxel: float = VOXEL) -> GridPose:
+    # A camera whose optical frame coincides with the grid frame keeps grid <-> camera checks readable.
+    return GridPose(rotation=np.eye(3), origin=np.array([0.1, -0.05, 0.4]), voxel_size=voxel, size=size)
+
+
+def bar(copies: int = 3, x: tuple[int, int] = (10, 15)) -> np.ndarray:
+    """A bar ``x[1] - x[0]`` voxels thick along grid x, 16 long along y, standing on z = 2 up to z = 20."""
+    occ = np.zeros((copies, N, N, N), dtype=bool)
+    occ[:, x[0]:x[1], 8:24, 2:20] = True
+    return occ
+
+
+def top_grasp(x: float, y: float, tip_z: float, width: float) -> GraspCandidates:
+    """One top grasp (approach straight down) closing along grid x; grid units."""
+    down = np.array([0.0, 0.0, -1.0])
+    closing = np.array([1.0, 0.0, 0.0])
+    rot = np.stack([np.cross(closing, down), closing, down], axis=1)
+    return GraspCandidates(np.array([[x, y, tip_z]]), rot[None], np.array([width]), np.zeros(1, np.int8))
+
+
+# ----------------------------------------------------------------------------------------- configs
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"max_opening": -0.01}, "max_opening must be in"),
+    ({"max_opening": 3.0}, "max_opening must be in"),
+    ({"finger_length": 0.0}, "finger_length must be in"),
+    ({"finger_width": float("nan")}, "finite"),
+    ({"palm_depth": "2cm"}, "finite number"),
+    ({"min_object_width": 0.09}, "min_object_width"),
+])
+def test_gripper_config_rejects_absurd_values(kwargs, message):
+    with pytest.raises(GraspError, match=message):
+        GripperConfig(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"max_candidates": 0}, "max_candidates"),
+    ({"top_yaws": 0, "side_yaws": 0}, "no approach direction"),
+    ({"clearance": 0.05}, "clearance"),
+    ({"seed": -1}, "seed"),
+    ({"gripper": {"max_opening": 0.08}}, "GripperConfig"),
+])
+def test_grasp_config_rejects_bad_values(kwargs, message):
+    with pytest.raises(GraspError, match=message):
+        GraspConfig(**kwargs)
+
+
+def test_grasp_error_is_a_value_error():
+    assert issubclass(GraspError, ValueError)
+
+
+# ------------------------------------------------------------------------------------ input checks
+
+
+@pytest.mark.parametrize("occ, message", [
+    (np.zeros((N, N, N), bool), r"\(S, N, N, N\)"),
+    (np.zeros((0, N, N, N), bool), "S >= 1"),
+    (np.zeros((2, 16, 16, 16), bool), "grid pose says 32"),
+])
+def test_bad_completions_are_rejected(occ, message):
+    with pytest.raises(GraspError, match=message):
+        plan_grasps(occ, identity_pose())
+
+
+def test_bad_points_are_rejected():
+    with pytest.raises(GraspError, match="NaN"):
+        plan_grasps(bar(), identity_pose(), np.array([[0.0, np.nan, 0.4]]))
+    with pytest.raises(GraspError, match=r"\(M, 3\)"):
+        plan_grasps(bar(), identity_pose(), np.zeros((4, 2)))
+
+
+def test_empty_completions_without_observation_cannot_place_the_plane():
+    with pytest.raises(GraspError, match="support plane"):
+        plan_grasps(np.zeros((2, N, N, N), bool), identity_pose())
+
+
+def test_empty_completions_give_no_grasps():
+    grasps = plan_grasps(np.zeros((2, N, N, N), bool), identity_pose(), support_z=1.0)
+    assert len(grasps) == 0 and grasps.holds.shape == (0, 2) and grasps.poses.shape == (0, 4, 4)
+
+
+# -------------------------------------------------------------------------------------- width
+
+
+def test_width_of_a_five_voxel_bar_is_five_voxels_plus_clearance():
+    grasps = plan_grasps(bar(), identity_pose(), support_z=2.0)
+    grid = grasps.grid
+    along_x = np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9  # closing axis = grid x
+    assert along_x.sum() >= 5
+    np.testing.assert_allclose(grid.widths[along_x], 5.0 + 2 * CLEAR, atol=1e-6)
+    np.testing.assert_allclose(grid.origins[along_x, 0], 12.5, atol=1e-6)  # centred on the bar
+    np.testing.assert_allclose(grasps.widths[along_x], (5.0 + 2 * CLEAR) * VOXEL, atol=1e-9)
+    best = grasps.subset(slice(0, 1))
+    assert best.scores[0] == 1.0
+    assert grasps.widths[0] <= 8.0 * VOXEL + 2 * CONFIG.clearance + 1e-9  # the narrow side is preferred
+
+
+def test_width_is_the_widest_completion_plus_clearance():
+    occ = bar(3)
+    occ[1, 15:17] = occ[1, 14]  # completion 1 is 7 voxels thick
+    grid = generate_candidates(occ, identity_pose(), config=CONFIG, support_z=2.0)
+    along_x = np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9
+    np.testing.assert_allclose(grid.widths[along_x], 7.0 + 2 * CLEAR, atol=1e-6)
+    holds, _ = score_grasps(grid.subset(np.flatnonzero(along_x)), occ, identity_pose(), 2.0, CONFIG)
+    assert holds.any(axis=0).all()
+
+
+def test_too_wide_object_is_rejected():
+    wide = bar(2, x=(8, 22))  # 14 voxels = 8.75 cm > 8 cm opening
+    grid = generate_candidates(wide, identity_pose(), config=CONFIG, support_z=2.0)
+    assert len(grid) > 0
+    assert not np.any(np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9)  # nothing closes across x
+    too_wide = top_grasp(15.0, 16.0, 12.5, 14.0 + 2 * CLEAR)
+    holds, _ = score_grasps(too_wide, wide, identity_pose(), 2.0, CONFIG)
+    assert not holds.any()
+    # the same hand-built grasp on the thin bar at a legal width holds
+    holds, _ = score_grasps(top_grasp(12.5, 16.0, 12.5, 5.0 + 2 * CLEAR), bar(2), identity_pose(), 2.0, CONFIG)
+    assert holds.all()
+
+
+# --------------------------------------------------------------------------------- collisions
+
+
+def test_finger_overlapping_one_voxel_is_not_held_for_that_completion_only():
+    occ = bar(3)
+    grasp = top_grasp(12.5, 16.0, 12.5, 5.0 + 2 * CLEAR)
+    holds, _ = score_grasps(grasp, occ, identity_pose(), 2.0, CONFIG)
+    assert holds.tolist() == [[True, True, True]]
+    finger_x = int(np.floor(12.5 + (5.0 + 2 * CLEAR) / 2 + FT / 2))
+    occ[1, finger_x, 16, 12] = True  # one voxel where the +y finger (grid +x side) goes
+    holds, _ = score_grasps(grasp, occ, identity_pose(), 2.0, CONFIG)
+    assert holds.tolist() == [[True, False, True]]
+
+
+def test_palm_collision_and_empty_closing_region_are_not_held():
+    occ = bar(2)
+    occ[0, 12, 16, int(12.5 + FL + 1)] = True  # a voxel just above the fingers' root: under the palm
+    holds, _ = score_grasps(top_grasp(12.5, 16.0, 12.5, 5.0 + 2 * CLEAR), occ, identity_pose(), 2.0, CONFIG)
+    assert holds.tolist() == [[False, True]]
+    holds, _ = score_grasps(top_grasp(12.5, 28.0, 12.5, 5.0 + 2 * CLEAR), occ, identity_pose(), 2.0, CONFIG)
+    assert not holds.any()  # nothing between the fingers
+
+
+def test_min_object_width_rejects_slivers():
+    occ = np.zeros((1, N, N, N), bool)
+    occ[0, 12, 8:24, 2:20] = True  # one voxel = 6.25 mm thick
+    grasp = top_grasp(12.5, 16.0, 12.5, 1.0 + 2 * CLEAR)
+    assert score_grasps(grasp, occ, identity_pose(), 2.0, CONFIG)[0].all()
+    strict = GraspConfig(gripper=GripperConfig(min_object_width=0.012))
+    assert not score_grasps(grasp, occ, identity_pose(), 2.0, strict)[0].any()
+
+
+def test_below_the_support_plane_is_rejected():
+    occ = bar(2)
+    occ[:, :, :, 8:] = False  # a short bar: fingers reaching down to the plane do not put the palm into it
+    low = top_grasp(12.5, 16.0, 1.5, 5.0 + 2 * CLEAR)  # fingertips half a voxel below a plane at z = 2
+    assert not score_grasps(low, occ, identity_pose(), 2.0, CONFIG)[0].any()
+    assert score_grasps(low, occ, identity_pose(), 1.0, CONFIG)[0].all()
+    grasps = plan_grasps(occ, identity_pose(), support_z=6.0)  # a plane through the bar's lower part
+    assert len(grasps) > 0
+    corners = lowest_gripper_z(grasps)
+    assert np.all(corners[grasps.scores > 0] >= 6.0 - 1e-6)
+
+
+def lowest_gripper_z(grasps) -> np.ndarray:
+    """Brute force: lowest grid z of the eight corners of every gripper box (fingers at width, palm)."""
+    g = CONFIG.gripper
+    fl, fw, ft, pd, wmax = (v / VOXEL for v in (g.finger_length, g.finger_width, g.finger_thickness,
+                                                g.palm_depth, g.max_opening))
+    lows = []
+    for origin, rot, w in zip(grasps.grid.origins, grasps.grid.rotations, grasps.grid.widths, strict=True):
+        boxes = [((-fw / 2, fw / 2), (w / 2, w / 2 + ft), (-fl, 0)),
+                 ((-fw / 2, fw / 2), (-w / 2 - ft, -w / 2), (-fl, 0)),
+                 ((-fw / 2, fw / 2), (-wmax / 2 - ft, wmax / 2 + ft), (-fl - pd, -fl))]
+        z = min((origin + rot @ np.array([x, y, zz]))[2] for b in boxes for x in b[0] for y in b[1] for zz in b[2])
+        lows.append(z)
+    return np.array(lows)
+
+
+# --------------------------------------------------------------------------- ranking and poses
+
+
+def test_ranking_scores_and_determinism():
+    occ = bar(4)
+    occ[2:, 15:18, 8:24, 2:20] = True  # two of four completions are thicker (8 voxels)
+    first = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=3))
+    again = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=3))
+    assert 0 < len(first) <= 60
+    np.testing.assert_array_equal(first.poses, again.poses)
+    np.testing.assert_array_equal(first.holds, again.holds)
+    np.testing.assert_allclose(first.scores, first.holds.mean(axis=1))
+    assert np.all((first.scores >= 0) & (first.scores <= 1)) and np.all((first.secondary >= 0) & (first.secondary <= 1))
+    key = np.stack([first.scores, first.secondary], axis=1)
+    for a, b in zip(key[:-1], key[1:], strict=True):
+        assert a[0] > b[0] or (a[0] == b[0] and a[1] >= b[1])
+    other = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=4))
+    assert other.scores[0] == first.scores[0] == 1.0
+
+
+def test_many_completions_use_several_bit_words():
+    occ = bar(70)
+    grasp = top_grasp(12.5, 16.0, 12.5, 5.0 + 2 * CLEAR)
+    finger_x = int(np.floor(12.5 + (5.0 + 2 * CLEAR) / 2 + FT / 2))
+    occ[1::3, finger_x, 16, 12] = True
+    holds, _ = score_grasps(grasp, occ, identity_pose(), 2.0, CONFIG)
+    expected = np.ones(70, bool)
+    expected[1::3] = False
+    np.testing.assert_array_equal(holds[0], expected)
+
+
+def test_camera_frame_pose_convention():
+    pose = GridPose(rotation=Rotation.from_euler("xyz", [100, 10, -20], degrees=True).as_matrix(),
+                    origin=np.array([0.05, 0.02, 0.6]), voxel_size=VOXEL, size=N)
+    grasps = plan_grasps(bar(), pose, support_z=2.0, config=GraspConfig(max_candidates=40))
+    assert len(grasps) > 0
+    for m, origin, rot in zip(grasps.poses, grasps.grid.origins, grasps.grid.rotations, strict=True):
+        r = m[:3, :3]
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-9)
+        np.testing.assert_allclose(np.cross(r[:, 1], r[:, 2]), r[:, 0], atol=1e-9)  # x = y cross z
+        np.testing.assert_allclose(m[:3, 3], pose.grid_to_camera(origin[None])[0], atol=1e-12)
+        np.testing.assert_allclose(r[:, 2], pose.rotation @ rot[:, 2], atol=1e-12)  # approach
+    positions, quats = grasps.position_quaternions()
+    np.testing.assert_allclose(Rotation.from_quat(quats).as_matrix(), grasps.poses[:, :3, :3], atol=1e-9)
+    p, q = matrix_to_position_quaternion(grasps.poses[0])
+    np.testing.assert_allclose(p, positions[0])
+    np.testing.assert_allclose(np.linalg.norm(q), 1.0)
+    with pytest.raises(GraspError, match="4x4"):
+        matrix_to_position_quaternion(np.eye(3))
+    top = [k for k, kind in enumerate(grasps.kinds) if kind == "top"]
+    assert top and np.allclose(grasps.grid.rotations[top][:, :, 2], [0, 0, -1])  # top = straight down in the grid
+
+
+def test_top_and_side_approaches_are_generated():
+    grid = generate_candidates(bar(), identity_pose(), config=GraspConfig(max_candidates=400), support_z=2.0)
+    kinds = set(grid.kinds.tolist())
+    assert kinds == {0, 1}
+    side = grid.rotations[grid.kinds == 1]
+    np.testing.assert_allclose(side[:, 2, 2], 0.0, atol=1e-12)  # side approaches are horizontal
+
+
+def test_max_candidates_bounds_the_count():
+    grid = generate_candidates(bar(), identity_pose(), config=GraspConfig(max_candidates=7), support_z=2.0)
+    assert 1 <= len(grid) <= 7
+
+
+def test_support_height_estimate():
+    occ = bar(3)
+    pose = identity_pose()
+    assert estimate_support_height(occ, pose) == 2.0  # lowest occupied layer of the completions
+    points = pose.grid_to_camera(np.array([[12.0, 10.0, 4.3], [12.0, 12.0, 9.0]]))
+    assert estimate_support_height(occ, pose, points) == 2.0  # completions reach lower than the points
+    occ[:, :, :, 2:5] = False
+    assert estimate_support_height(occ, pose, points) == pytest.approx(4.3)
+    known = np.zeros((N, N, N), bool)
+    known[12, 10, 3] = True
+    assert estimate_support_height(occ, pose, known_occupied=known) == 3.0
+    occ[0, 12, 12, 0] = True  # one stray low voxel in one sample does not move the median
+    assert estimate_support_height(occ, pose, known_occupied=known) == 3.0
+
+
+def test_single_completion_choice_and_plot(tmp_path):
+    occ = bar(4)
+    occ[1:, 15:20] = occ[1:, 14:15]  # three of four completions are 10 voxels thick
+    choice = single_completion_choice(occ, identity_pose(), 0, support_z=2.0)
+    assert choice.score_alone == 1.0
+    assert len(choice.grasp) == 1 and choice.grasp.holds.shape == (1, 4)
+    assert choice.score_all == pytest.approx(choice.grasp.holds.mean())
+    with pytest.raises(GraspError, match="out of range"):
+        single_completion_choice(occ, identity_pose(), 4, support_z=2.0)
+    grasps = plan_grasps(occ, identity_pose(), support_z=2.0)
+    assert grasps.scores[0] == 1.0
+    path = tmp_path / "grasps.png"
+    fig = plot_grasps(grasps, occ, identity_pose(), top_k=3, path=path, title="bar")
+    assert path.stat().st_size > 10_000 and len(fig.axes) == 2
+    matplotlib.pyplot.close(fig)
