@@ -1,0 +1,259 @@
+"""``pssnet plausible`` (build/cache plausible sets) and ``pssnet evaluate`` (the paper's table and figures)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pssnet_core.evaluation.observation_model import ObservationModelConfig, ObservationModelError
+from pssnet_core.evaluation.plausible import (
+    PlausibleConfig,
+    PlausibleSetError,
+    PlausibleSets,
+    ProceduralMeshes,
+    cached_plausible_sets,
+    dataset_fingerprint,
+)
+from pssnet_core.evaluation.testsets import TEST_SETS, find_test_set, load_test_set
+
+PAPER_DELTA = 0.04
+SCALED_DELTA = 0.01
+
+
+class EvaluationCliError(ValueError):
+    """Bad command-line input (missing data/checkpoints, unknown names)."""
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _add_plausible_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", required=True, help="directory holding the test sets (DATA/mugs or DATA/test/mugs, ...)")
+    p.add_argument("--sets", default=",".join(TEST_SETS), help=f"test sets (default {','.join(TEST_SETS)})")
+    p.add_argument("--max-observations", type=int, default=None,
+                   help="score only this many observations per set (evenly spaced); candidates are always all")
+    p.add_argument("--workers", type=int, default=2, help="processes for the plausible sets")
+    p.add_argument("--cache-dir", default=None, help="plausible-set cache (default DATA_SET/plausible_cache)")
+    p.add_argument("--recompute", action="store_true", help="ignore cached plausible sets")
+    p.add_argument("--outlier-fraction", type=float, default=0.0,
+                   help="fraction of a view's object pixels allowed to exceed delta (paper: 0)")
+    p.add_argument("--outlier-count", type=int, default=0, help="violating pixels always allowed (paper: 0)")
+    p.add_argument("--record-fraction", type=float, default=0.01,
+                   help="store candidates up to this violating fraction (allowances up to it need no recompute)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Adds ``plausible`` and ``evaluate`` to the ``pssnet`` command line."""
+    p = subparsers.add_parser(
+        "plausible", help="build (and cache) the plausible sets of the test sets (paper Alg. 2)",
+        description="For every test observation, every other observation's ground truth aligned by ICP and kept "
+                    "if the observation model (Alg. 1) accepts it. Cached on disk by dataset content and parameters.")
+    _add_plausible_options(p)
+    p.add_argument("--deltas", type=_floats, default=(PAPER_DELTA, SCALED_DELTA),
+                   help="observation-model tolerances in metres (default 0.04,0.01)")
+    p.set_defaults(func=_guard(_plausible_command))
+
+    e = subparsers.add_parser(
+        "evaluate", help="score completion models against the plausible sets: the paper's table and figures",
+        description="Writes OUT/results.md, OUT/results.csv, OUT/per_observation.csv, "
+                    "OUT/coverage_vs_rotation.png and OUT/samples_<method>.png.")
+    e.add_argument("--models", default="pssnet,vae,vae_gan,recgan", help="method names (checkpoint order)")
+    e.add_argument("--checkpoints", required=True,
+                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+    _add_plausible_options(e)
+    e.add_argument("--samples", type=int, default=100, help="completions per observation (paper: 100)")
+    e.add_argument("--delta", type=float, default=PAPER_DELTA, help="the paper's delta (m)")
+    e.add_argument("--scaled-delta", type=float, default=SCALED_DELTA,
+                   help="the delta scaled to real-size objects (m); <= 0 to skip")
+    e.add_argument("--out", default="results", help="output directory")
+    e.add_argument("--device", default="cpu")
+    e.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--plot-mugs", type=int, default=3, help="mugs in the coverage-vs-rotation plot")
+    e.set_defaults(func=_guard(_evaluate_command))
+
+
+def _guard(handler):
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return handler(args)
+        except (EvaluationCliError, PlausibleSetError, ObservationModelError, ValueError, OSError) as error:
+            print(f"pssnet {args.command}: error: {error}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            return 130
+    return run
+
+
+def _set_names(text: str) -> list[str]:
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    unknown = [n for n in names if n not in TEST_SETS]
+    if unknown:
+        raise EvaluationCliError(f"unknown test sets {unknown}; known: {list(TEST_SETS)}")
+    return names
+
+
+def _references(count: int, max_observations: int | None) -> list[int] | None:
+    if max_observations is None or max_observations >= count:
+        return None
+    if max_observations < 1:
+        raise EvaluationCliError(f"--max-observations must be >= 1, got {max_observations}")
+    return sorted(set(np.linspace(0, count - 1, max_observations).round().astype(int).tolist()))
+
+
+def _plausible_for(args: argparse.Namespace,
+                   deltas: tuple[float, ...]) -> dict[str, tuple[list, PlausibleSets, list[int]]]:
+    """Loads each requested test set and its plausible sets (cached or computed)."""
+    progress = not args.no_progress
+    config = PlausibleConfig(deltas=deltas, record_fraction=max(args.record_fraction, args.outlier_fraction),
+                             observation=ObservationModelConfig(outlier_fraction=args.outlier_fraction,
+                                                                outlier_count=args.outlier_count))
+    out = {}
+    found_any = False
+    for name in _set_names(args.sets):
+        root = find_test_set(args.data, name)
+        if root is None:
+            print(f"{name}: no test set under {args.data} (skipped; build it with "
+                  f"`pssnet dataset build --family {'mugs' if name == 'mugs' else 'ycb'} --split test`)")
+            continue
+        found_any = True
+        views, _ = load_test_set(root, progress=progress)
+        refs = _references(len(views), args.max_observations)
+        cache = Path(args.cache_dir) if args.cache_dir else root / "plausible_cache"
+        t0 = time.perf_counter()
+        sets, path, hit = cached_plausible_sets(views, ProceduralMeshes(), dataset_fingerprint(root), cache, config,
+                                                refs, workers=args.workers, progress=progress,
+                                                desc=f"plausible {name}", recompute=args.recompute)
+        s = sets.stats
+        state = "cached" if hit else f"computed in {time.perf_counter() - t0:.1f} s"
+        sizes = {d: float(np.mean(list(sets.sizes(d).values()))) for d in deltas}
+        print(f"{name}: {len(views)} observations, {len(sets.references)} references, {s['pairs']} pairs "
+              f"({state}; {s['pairs_per_second']:.0f} pairs/s with {s['workers']} workers when computed); "
+              f"mean set size {', '.join(f'{d * 100:g} cm: {v:.1f}' for d, v in sizes.items())}; "
+              f"own ground truth plausible: {s['own_ground_truth_plausible_rate']} -> {path}")
+        out[name] = (views, sets, [int(i) for i in sets.references])
+    if not found_any:
+        raise EvaluationCliError(f"no test sets {args.sets} found under {args.data}")
+    return out
+
+
+def _plausible_command(args: argparse.Namespace) -> int:
+    _plausible_for(args, tuple(args.deltas))
+    return 0
+
+
+def resolve_checkpoints(models: list[str], spec: str) -> dict[str, Path]:
+    """Checkpoint path per model from a directory or a comma list (see ``--checkpoints``)."""
+    path = Path(spec)
+    if path.is_dir():
+        out = {}
+        for m in models:
+            tried = [path / f"{m}.pt", path / m / "best.pt", path / m / "model.pt"]
+            hit = next((t for t in tried if t.is_file()), None)
+            if hit is None:
+                raise EvaluationCliError(f"no checkpoint for {m} in {path} (tried {', '.join(map(str, tried))})")
+            out[m] = hit
+        return out
+    items = [Path(s.strip()) for s in spec.split(",") if s.strip()]
+    if len(items) != len(models):
+        raise EvaluationCliError(f"{len(items)} checkpoints for {len(models)} models ({','.join(models)})")
+    for item in items:
+        if not item.is_file():
+            raise EvaluationCliError(f"checkpoint {item} does not exist")
+    return dict(zip(models, items, strict=True))
+
+
+def load_completers(models: list[str], spec: str, device: str, threads: int | None) -> dict[str, Any]:
+    """Completers by method name (``pssnet_core.inference.Completer``)."""
+    from pssnet_core.inference import Completer
+
+    return {m: Completer.from_checkpoint(p, device=device, threads=threads)
+            for m, p in resolve_checkpoints(models, spec).items()}
+
+
+def run_evaluation(args: argparse.Namespace, completers: dict[str, Any]) -> dict[str, Path]:
+    """The evaluation behind ``pssnet evaluate`` with given completers (tests pass fakes). Returns written files."""
+    from pssnet_core.evaluation.evaluate import EvaluationOutput, evaluate_set
+    from pssnet_core.evaluation.report import (
+        markdown_table,
+        plot_coverage_vs_rotation,
+        plot_samples_vs_plausible,
+        summarise,
+        write_csv,
+    )
+
+    if args.samples < 1:
+        raise EvaluationCliError(f"--samples must be >= 1, got {args.samples}")
+    deltas = (args.delta,) + ((args.scaled_delta,) if args.scaled_delta and args.scaled_delta > 0 else ())
+    if len(set(deltas)) != len(deltas):
+        deltas = (args.delta,)
+    loaded = _plausible_for(args, deltas)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    output = EvaluationOutput()
+    t0 = time.perf_counter()
+    for name, (views, sets, refs) in loaded.items():
+        # One example per figure set: the first occluded-handle mug, the first narrow-slit observation.
+        if name == "mugs":
+            hidden = [i for i in refs if views[i].meta.get("handle_visible") is False]
+            chosen = hidden[len(hidden) // 2] if hidden else None
+        elif name == "ycb_narrow":
+            chosen = refs[len(refs) // 2] if refs else None
+        else:
+            chosen = None
+        keep = (lambda v, c=chosen: v.index == c) if chosen is not None else None
+        evaluate_set(name, views, ProceduralMeshes(), sets, completers, deltas, args.samples, args.seed, refs,
+                     keep=keep, progress=not args.no_progress, output=output)
+    methods = list(completers)
+    summary = summarise(output.rows, methods, deltas)
+    notes = {args.delta: "the paper's value"}
+    if len(deltas) > 1:
+        notes[deltas[1]] = "scaled to real-size objects, see DESIGN.md"
+    header = ["# Plausible-diversity evaluation", "",
+              "Chamfer distances between voxel-centre clouds, millimetres (lower is better). best acc = M_A, "
+              "coverage = M_C, avg plausibility = M_P, plausible diversity = M_PD = M_C + M_P.", "",
+              f"Command: `pssnet evaluate {' '.join(sys.argv[2:]) if sys.argv[1:2] == ['evaluate'] else ''}`", "",
+              f"Samples per observation: {args.samples}; outlier allowance: fraction {args.outlier_fraction}, "
+              f"count {args.outlier_count}; sets: "
+              f"{', '.join(f'{k} ({len(v[2])} observations)' for k, v in loaded.items())}.",
+              ""]
+    files = {"markdown": out_dir / "results.md"}
+    files["markdown"].write_text("\n".join(header) + markdown_table(summary, methods, deltas, notes))
+    files["csv"] = write_csv(out_dir / "results.csv", summary)
+    files["per_observation"] = write_csv(out_dir / "per_observation.csv", output.rows)
+    plot = plot_coverage_vs_rotation(out_dir / "coverage_vs_rotation.png", output.rows, methods, deltas,
+                                     args.plot_mugs)
+    if plot is not None:
+        files["coverage_plot"] = plot
+    for method in methods:
+        examples = [e for e in output.examples if abs(e.delta - deltas[-1]) < 1e-12]
+        png = plot_samples_vs_plausible(out_dir / f"samples_{method}.png", examples, method)
+        if png is not None:
+            files[f"samples_{method}"] = png
+    timings = dict(output.timings, evaluate_seconds=time.perf_counter() - t0)
+    (out_dir / "evaluation_info.json").write_text(json.dumps(
+        {"deltas": deltas, "methods": methods, "samples": args.samples, "timings": timings,
+         "plausible_stats": {k: v[1].stats for k, v in loaded.items()}}, indent=2, default=str))
+    return files
+
+
+def _evaluate_command(args: argparse.Namespace) -> int:
+    models = [m.strip() for m in args.models.split(",") if m.strip()]
+    if not models:
+        raise EvaluationCliError("--models is empty")
+    completers = load_completers(models, args.checkpoints, args.device, args.threads)
+    files = run_evaluation(args, completers)
+    print((Path(args.out) / "results.md").read_text())
+    print("wrote " + ", ".join(str(p) for p in files.values()))
+    return 0

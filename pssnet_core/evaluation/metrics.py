@@ -1,0 +1,203 @@
+"""Plausible-diversity metrics (paper, Sec. 5): best accuracy, coverage, plausibility, plausible diversity.
+
+Distance: the chamfer distance between the voxel-centre point clouds of two occupancy grids,
+``d(A, B) = mean_a min_b |a - b| + mean_b min_a |a - b|`` (unsquared, summed both ways, as in the authors'
+``chamfer_distance_pointcloud``), reported in millimetres.
+
+How it is computed: every cloud here is a set of voxel centres of the *same* grid (the reference
+observation's), so the nearest-neighbour distance from any voxel to cloud B is B's Euclidean distance
+transform (``scipy.ndimage.distance_transform_edt``, exact). One transform per grid then turns every pair
+into two masked sums, and all sample-by-shape pairs into two matrix products: for 100 samples against a
+plausible set of 100 shapes at 32^3 that is ~0.3 s instead of ~90 s of KD-tree queries (9 ms a pair). It
+needs only numpy/scipy (no open3d), so it also runs on the training machine. :func:`chamfer_distance` (a
+cKDTree on arbitrary point clouds) is the reference the grid version is tested against.
+
+Empty clouds: the distance between an empty and a non-empty cloud is undefined; we use ``empty_distance``
+(default: the grid's diagonal, the largest distance two of its points can have) so that a model that outputs
+empty grids is penalised rather than silently skipped; two empty clouds are at distance 0.
+
+Metrics for one observation, samples S (n of them), plausible set P (its first member the ground truth):
+
+- best accuracy    M_A  = min_s d(s, ground truth)
+- coverage         M_C  = mean_{p in P} min_s d(s, p)   (every plausible shape should be near some sample)
+- plausibility     M_P  = mean_s min_{p in P} d(s, p)   (every sample should be near some plausible shape)
+- plausible div.   M_PD = M_C + M_P
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+
+class MetricsError(ValueError):
+    """Bad input to a metric (shapes, empty sets)."""
+
+
+def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Chamfer distance between two point clouds (same units as the points): mean NN a->b + mean NN b->a.
+
+    Raises:
+        MetricsError: a cloud is empty or not (M, 3).
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
+        raise MetricsError(f"point clouds must be (M, D) with the same D, got {a.shape} and {b.shape}")
+    if len(a) == 0 or len(b) == 0:
+        raise MetricsError("chamfer distance of an empty point cloud is undefined")
+    d_ab = cKDTree(b).query(a)[0].mean()
+    d_ba = cKDTree(a).query(b)[0].mean()
+    return float(d_ab + d_ba)
+
+
+def _as_grids(grids: np.ndarray, name: str) -> np.ndarray:
+    grids = np.asarray(grids)
+    if grids.ndim == 3:
+        grids = grids[None]
+    if grids.ndim != 4:
+        raise MetricsError(f"{name} must be (K, N, N, N) or (N, N, N) occupancy, got shape {grids.shape}")
+    return grids.astype(bool, copy=False)
+
+
+def distance_fields(grids: np.ndarray) -> np.ndarray:
+    """Distance (voxel units) from every voxel centre to the nearest occupied voxel centre, per grid.
+
+    Empty grids get +inf everywhere.
+    """
+    grids = _as_grids(grids, "grids")
+    out = np.empty(grids.shape, dtype=np.float32)
+    for k, grid in enumerate(grids):
+        out[k] = ndimage.distance_transform_edt(~grid) if grid.any() else np.inf
+    return out
+
+
+def chamfer_matrix(a: np.ndarray, b: np.ndarray, voxel_size: float, empty_distance: float | None = None,
+                   fields_a: np.ndarray | None = None, fields_b: np.ndarray | None = None) -> np.ndarray:
+    """Chamfer distances between every grid of ``a`` and every grid of ``b`` (voxel-centre clouds), metres.
+
+    Args:
+        a: (A, N, N, N) bool occupancy grids.
+        b: (B, N, N, N) bool occupancy grids of the same grid.
+        voxel_size: voxel edge in metres.
+        empty_distance: distance (metres) when exactly one cloud is empty; default the grid diagonal.
+        fields_a, fields_b: precomputed :func:`distance_fields` (reuse across calls).
+
+    Returns:
+        (A, B) float64 metres.
+    """
+    a = _as_grids(a, "a")
+    b = _as_grids(b, "b")
+    if a.shape[1:] != b.shape[1:]:
+        raise MetricsError(f"grids differ in shape: {a.shape[1:]} vs {b.shape[1:]}")
+    if not voxel_size > 0:
+        raise MetricsError(f"voxel_size must be positive, got {voxel_size}")
+    if empty_distance is None:
+        empty_distance = math.sqrt(3.0) * a.shape[1] * voxel_size
+    fa = distance_fields(a) if fields_a is None else fields_a
+    fb = distance_fields(b) if fields_b is None else fields_b
+    na = a.reshape(len(a), -1).sum(1).astype(np.float64)
+    nb = b.reshape(len(b), -1).sum(1).astype(np.float64)
+    occ_a = a.reshape(len(a), -1).astype(np.float32)
+    occ_b = b.reshape(len(b), -1).astype(np.float32)
+    # Empty grids have infinite fields: zero them for the products and fix those entries afterwards.
+    fa_flat = np.where(np.isfinite(fa), fa, 0).reshape(len(a), -1)
+    fb_flat = np.where(np.isfinite(fb), fb, 0).reshape(len(b), -1)
+    # float64 accumulation: sums of up to N^3 distances.
+    sum_ab = occ_a.astype(np.float64) @ fb_flat.T.astype(np.float64)  # sum over a's points of dist to b
+    sum_ba = fa_flat.astype(np.float64) @ occ_b.T.astype(np.float64)  # sum over b's points of dist to a
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = (sum_ab / na[:, None] + sum_ba / nb[None, :]) * voxel_size
+    empty_a = na == 0
+    empty_b = nb == 0
+    d[empty_a[:, None] ^ empty_b[None, :]] = empty_distance
+    d[empty_a[:, None] & empty_b[None, :]] = 0.0
+    return d
+
+
+@dataclass(frozen=True)
+class ObservationMetrics:
+    """Metrics of one observation, millimetres.
+
+    Attributes:
+        best_accuracy_mm: M_A.
+        coverage_mm: M_C.
+        plausibility_mm: M_P.
+        plausible_diversity_mm: M_PD = M_C + M_P.
+        num_samples: samples evaluated.
+        num_plausible: size of the plausible set.
+    """
+
+    best_accuracy_mm: float
+    coverage_mm: float
+    plausibility_mm: float
+    plausible_diversity_mm: float
+    num_samples: int
+    num_plausible: int
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def metrics_from_distances(sample_to_plausible: np.ndarray, sample_to_truth: np.ndarray) -> ObservationMetrics:
+    """Metrics from precomputed distances (metres).
+
+    Args:
+        sample_to_plausible: (S, P) d(sample s, plausible shape p).
+        sample_to_truth: (S,) d(sample s, ground truth).
+    """
+    dsp = np.asarray(sample_to_plausible, dtype=np.float64)
+    dst = np.asarray(sample_to_truth, dtype=np.float64).reshape(-1)
+    if dsp.ndim != 2 or dsp.shape[0] == 0 or dsp.shape[1] == 0:
+        raise MetricsError(f"need at least one sample and one plausible shape, got distances of shape {dsp.shape}")
+    if dst.shape[0] != dsp.shape[0]:
+        raise MetricsError(f"{dst.shape[0]} ground-truth distances for {dsp.shape[0]} samples")
+    best = dst.min() * 1000.0
+    coverage = dsp.min(axis=0).mean() * 1000.0
+    plausibility = dsp.min(axis=1).mean() * 1000.0
+    return ObservationMetrics(best_accuracy_mm=float(best), coverage_mm=float(coverage),
+                              plausibility_mm=float(plausibility),
+                              plausible_diversity_mm=float(coverage + plausibility),
+                              num_samples=int(dsp.shape[0]), num_plausible=int(dsp.shape[1]))
+
+
+def observation_metrics(samples: np.ndarray, ground_truth: np.ndarray, plausible: np.ndarray | None,
+                        voxel_size: float, empty_distance: float | None = None) -> ObservationMetrics:
+    """M_A, M_C, M_P, M_PD of one observation from occupancy grids on the observation's grid.
+
+    Args:
+        samples: (S, N, N, N) bool sampled completions.
+        ground_truth: (N, N, N) bool.
+        plausible: (P, N, N, N) bool plausible shapes; None = only the ground truth. The ground truth is added
+            if no member equals it (the plausible set always contains the truth).
+        voxel_size: metres.
+        empty_distance: see :func:`chamfer_matrix`.
+    """
+    samples = _as_grids(samples, "samples")
+    gt = _as_grids(ground_truth, "ground_truth")
+    if gt.shape[0] != 1:
+        raise MetricsError("ground_truth must be a single (N, N, N) grid")
+    shapes = gt if plausible is None else _as_grids(plausible, "plausible")
+    if not any(np.array_equal(s, gt[0]) for s in shapes):
+        shapes = np.concatenate([gt, shapes])
+    fields_s = distance_fields(samples)
+    d_sp = chamfer_matrix(samples, shapes, voxel_size, empty_distance, fields_a=fields_s)
+    d_st = chamfer_matrix(samples, gt, voxel_size, empty_distance, fields_a=fields_s)[:, 0]
+    return metrics_from_distances(d_sp, d_st)
+
+
+METRIC_NAMES: tuple[str, ...] = ("best_accuracy_mm", "coverage_mm", "plausibility_mm", "plausible_diversity_mm")
+
+
+def aggregate(metrics: Iterable[ObservationMetrics]) -> dict[str, float]:
+    """Mean of each metric over observations (plus ``count``)."""
+    items = list(metrics)
+    out: dict[str, float] = {"count": float(len(items))}
+    for name in METRIC_NAMES:
+        out[name] = float(np.mean([getattr(m, name) for m in items])) if items else float("nan")
+    return out
