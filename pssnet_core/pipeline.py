@@ -1,0 +1,314 @@
+"""The ROS-free facade the completion node calls: one view in, completions and ranked grasps out.
+
+    pipeline = CompletionPipeline.from_checkpoint(None, PipelineConfig(num_samples=20))
+    result = pipeline.run(depth_m, mask, intrinsics)
+    result.completions[0]        # (M, 3) camera-frame centres of the occupied voxels of sample 0
+    result.grasps                # ranked grasps (or None when not asked for)
+
+Steps: input checks -> up vector (parameter, or the support plane around the object) -> the shared
+observation code path (:func:`pssnet_core.geometry.observe`) -> sampled completions -> voxel centres in the
+camera frame -> grasp candidates scored against every completion. Every input problem raises
+:class:`PipelineInputError` (a ValueError) whose message says exactly what is wrong.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from pssnet_core.geometry import CameraIntrinsics, GridConfig, Observation, ObservationError, observe
+from pssnet_core.grasps import GraspConfig, GraspError, GraspSet, plan_grasps
+
+if TYPE_CHECKING:  # torch is imported only when a model is loaded: `completion_node --help` stays fast
+    from pssnet_core.inference import Completer
+
+#: voxel size of the grid when a checkpoint does not record the one it was trained with (GridConfig default)
+FALLBACK_VOXEL_SIZE = GridConfig().voxel_size
+
+
+class PipelineInputError(ValueError):
+    """The input (images, intrinsics, request options) cannot be processed; the message says why."""
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Everything the pipeline needs besides the model.
+
+    Attributes:
+        num_samples: completions per call when the caller does not say.
+        max_num_samples: requests above this are rejected (bounded time and memory).
+        seed: latent-noise seed; the same input and seed give the same completions. -1 draws a fresh seed
+            per call (from a generator seeded by ``seed_base``).
+        seed_base: seed of that generator (only with ``seed == -1``).
+        voxel_size: grid voxel size (metres); 0 = the model's (the voxel size it was trained with).
+        front_margin: voxels between the grid face and the nearest observed point along the view.
+        bottom_margin: voxels between the grid bottom and the lowest observed point.
+        up_vector: up (against gravity) in the camera's optical frame; (0, -1, 0) for a level camera.
+        estimate_up: fit the support plane around the object instead (``up_vector`` is then the prior).
+        support_plane_distance: RANSAC inlier distance of that fit (metres).
+        support_plane_max_tilt_deg: the plane's normal must lie this close to ``up_vector``.
+        min_depth: readings closer than this are "no reading" (metres).
+        max_depth: readings farther than this are "no reading" (metres).
+        min_mask_pixels: masks with fewer pixels are rejected.
+        min_valid_points: fewer masked pixels with a valid depth is an error.
+        grasps: gripper, candidate and scoring options (:class:`pssnet_core.grasps.GraspConfig`; its seed is
+            replaced by each call's latent seed).
+        grasp_top_k: grasps returned, best first.
+        grasp_min_score: grasps holding for a smaller fraction of the completions are not returned.
+    """
+
+    num_samples: int = 20
+    max_num_samples: int = 100
+    seed: int = 0
+    seed_base: int = 0
+    voxel_size: float = 0.0
+    front_margin: float = 1.0
+    bottom_margin: float = 1.0
+    up_vector: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    estimate_up: bool = False
+    support_plane_distance: float = 0.005
+    support_plane_max_tilt_deg: float = 45.0
+    min_depth: float = 0.1
+    max_depth: float = 5.0
+    min_mask_pixels: int = 50
+    min_valid_points: int = 20
+    grasps: GraspConfig = field(default_factory=GraspConfig)
+    grasp_top_k: int = 10
+    grasp_min_score: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.num_samples <= self.max_num_samples:
+            raise ValueError(f"num_samples must be in [1, max_num_samples={self.max_num_samples}], "
+                             f"got {self.num_samples}")
+        if self.seed < -1:
+            raise ValueError(f"seed must be >= 0, or -1 for a fresh seed per call, got {self.seed}")
+        if not 0 <= self.min_depth < self.max_depth:
+            raise ValueError(f"need 0 <= min_depth < max_depth, got {self.min_depth} and {self.max_depth}")
+        if self.voxel_size < 0:
+            raise ValueError(f"voxel_size must be >= 0 (0 = the model's), got {self.voxel_size}")
+        up = np.asarray(self.up_vector, dtype=np.float64)
+        if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-9:
+            raise ValueError(f"up_vector must be 3 finite numbers, not all zero, got {list(self.up_vector)}")
+        if self.min_mask_pixels < 1 or self.min_valid_points < 1:
+            raise ValueError("min_mask_pixels and min_valid_points must be >= 1")
+        if self.grasp_top_k < 1 or not 0.0 <= self.grasp_min_score <= 1.0:
+            raise ValueError(f"grasp_top_k must be >= 1 and grasp_min_score in [0, 1], got {self.grasp_top_k} and "
+                             f"{self.grasp_min_score}")
+
+
+@dataclass
+class PipelineResult:
+    """Completions (and grasps) of one view; all points in the camera's optical frame, metres.
+
+    Attributes:
+        observation: the observation grid the network saw (with the grid pose).
+        voxel_size: edge of one voxel (metres).
+        known_occupied: (M, 3) float32 centres of the known-occupied voxels.
+        completions: per sample, (M_i, 3) float32 centres of its occupied voxels.
+        occupancy: (n, N, N, N) bool sampled occupancy grids.
+        grasps: the best ``grasp_top_k`` grasps, ranked, scored against every completion; None when not asked
+            for.
+        up: (3,) the up vector used.
+        seed: the latent-noise seed used.
+        timings: seconds per step (``observe``, ``network``, ``centres``, ``grasps``, ``total``).
+    """
+
+    observation: Observation
+    voxel_size: float
+    known_occupied: np.ndarray
+    completions: list[np.ndarray]
+    occupancy: np.ndarray
+    grasps: GraspSet | None
+    up: np.ndarray
+    seed: int
+    timings: dict[str, float]
+
+    @property
+    def num_samples(self) -> int:
+        return len(self.completions)
+
+    def merged(self) -> tuple[np.ndarray, np.ndarray]:
+        """All samples' voxel centres in one (M, 3) array and the (M,) sample index of each point."""
+        if not self.completions:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.uint32)
+        points = np.concatenate(self.completions, axis=0)
+        index = np.concatenate([np.full(len(c), i, np.uint32) for i, c in enumerate(self.completions)])
+        return points, index
+
+
+def checkpoint_voxel_size(completer: Completer) -> float | None:
+    """Voxel size (metres) the completer's model was trained with, when its checkpoint records it."""
+    grid = getattr(completer, "grid_config", None)
+    if grid is not None and getattr(grid, "voxel_size", None):
+        return float(grid.voxel_size)
+    info = getattr(completer, "info", {}) or {}
+    for source in (info, info.get("grid") or {}, info.get("data_meta") or {}):
+        if isinstance(source, dict) and source.get("voxel_size"):
+            return float(source["voxel_size"])
+    return None
+
+
+class CompletionPipeline:
+    """Observation -> completions -> grasps for one loaded model. Thread-safe (one run at a time).
+
+    Args:
+        completer: the loaded model.
+        config: pipeline options; see :meth:`check_config` for what must agree with the model.
+    """
+
+    def __init__(self, completer: Completer, config: PipelineConfig | None = None) -> None:
+        self.completer = completer
+        self.model_voxel_size = checkpoint_voxel_size(completer)
+        self._lock = threading.Lock()
+        self._config = PipelineConfig()
+        self.config = config or PipelineConfig()
+        self._seed_rng = np.random.default_rng(self._config.seed_base)
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path | None, config: PipelineConfig | None = None,
+                        device: str = "cpu", threads: int | None = None) -> CompletionPipeline:
+        """Loads a checkpoint (None = the shipped default); raises ``CheckpointError`` with the reason."""
+        from pssnet_core.inference import Completer
+
+        return cls(Completer.from_checkpoint(path, device=device, threads=threads), config)
+
+    @property
+    def grid_size(self) -> int:
+        return int(self.completer.grid_size)
+
+    @property
+    def config(self) -> PipelineConfig:
+        return self._config
+
+    @config.setter
+    def config(self, config: PipelineConfig) -> None:
+        self.check_config(config)
+        self._config = config
+
+    def check_config(self, config: PipelineConfig) -> None:
+        """Raises ValueError when ``config`` does not fit the model (voxel size, grid margins)."""
+        voxel = self.voxel_size_for(config)
+        if self.model_voxel_size is not None and not np.isclose(voxel, self.model_voxel_size, rtol=1e-6):
+            raise ValueError(f"voxel_size {voxel} m differs from the {self.model_voxel_size} m the model was "
+                             "trained with; set it to 0 to use the model's")
+        self.grid_config(config)
+
+    def voxel_size_for(self, config: PipelineConfig) -> float:
+        if config.voxel_size > 0:
+            return float(config.voxel_size)
+        return self.model_voxel_size or FALLBACK_VOXEL_SIZE
+
+    def grid_config(self, config: PipelineConfig | None = None) -> GridConfig:
+        """The observation grid for ``config`` (default: the current one) and this model's grid size."""
+        config = config or self._config
+        try:
+            return GridConfig(size=self.grid_size, voxel_size=self.voxel_size_for(config),
+                              front_margin=config.front_margin, bottom_margin=config.bottom_margin)
+        except ObservationError as error:
+            raise ValueError(str(error)) from error
+
+    def _up_vector(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
+                   config: PipelineConfig) -> np.ndarray:
+        prior = np.asarray(config.up_vector, dtype=np.float64)
+        prior = prior / np.linalg.norm(prior)
+        if not config.estimate_up:
+            return prior
+        from pssnet_core.support_plane import SupportPlaneConfig, fit_support_plane  # open3d: only when used
+
+        plane = fit_support_plane(depth, mask, intrinsics, prior,
+                                  SupportPlaneConfig(distance=config.support_plane_distance,
+                                                     max_tilt_deg=config.support_plane_max_tilt_deg),
+                                  config.min_depth, config.max_depth)
+        return plane.up
+
+    def check_input(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
+                    num_samples: int | None, config: PipelineConfig) -> int:
+        """Validates one request; returns the number of samples to draw."""
+        n = config.num_samples if not num_samples else int(num_samples)
+        if n < 0 or n > config.max_num_samples:
+            raise PipelineInputError(f"num_samples {n} is out of range: ask for 1..{config.max_num_samples} "
+                                     "(max_num_samples), or 0 for the node's default")
+        if depth.ndim != 2 or mask.ndim != 2:
+            raise PipelineInputError(f"depth and mask must be 2-D images, got shapes {depth.shape} and {mask.shape}")
+        if mask.shape != depth.shape:
+            raise PipelineInputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but depth is "
+                                     f"{depth.shape[1]}x{depth.shape[0]}: they must be the same size")
+        if depth.shape != (intrinsics.height, intrinsics.width):
+            raise PipelineInputError(f"depth is {depth.shape[1]}x{depth.shape[0]} but camera_info says "
+                                     f"{intrinsics.width}x{intrinsics.height}")
+        mask_pixels = int(np.count_nonzero(mask))
+        if mask_pixels < config.min_mask_pixels:
+            what = "empty" if mask_pixels == 0 else "too small"
+            raise PipelineInputError(f"mask is {what}: {mask_pixels} pixels marked, need at least "
+                                     f"{config.min_mask_pixels} (min_mask_pixels)")
+        object_depth = depth[mask != 0]
+        if not np.isfinite(object_depth).any():
+            raise PipelineInputError("depth has no finite reading inside the mask (all NaN/Inf)")
+        return n
+
+    def run(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
+            num_samples: int | None = None, compute_grasps: bool = True) -> PipelineResult:
+        """Completes one view.
+
+        Args:
+            depth: (H, W) float depth in metres (0/NaN/Inf = no reading).
+            mask: (H, W), non-zero = target object.
+            intrinsics: intrinsics of the depth image.
+            num_samples: completions to draw; None or 0 = ``config.num_samples``.
+            compute_grasps: also generate and score grasps.
+
+        Raises:
+            PipelineInputError: the input cannot be processed (the message says why).
+        """
+        t0 = time.perf_counter()
+        config = self._config  # one consistent snapshot even if the node updates parameters meanwhile
+        depth = np.asarray(depth)
+        if not np.issubdtype(depth.dtype, np.floating):
+            raise PipelineInputError(f"depth must be float metres, got dtype {depth.dtype}")
+        mask = np.asarray(mask)
+        n = self.check_input(depth, mask, intrinsics, num_samples, config)
+        grid = self.grid_config(config)
+        try:
+            up = self._up_vector(depth, mask, intrinsics, config)
+            observation = observe(depth, mask, intrinsics, up, grid, config.min_depth, config.max_depth,
+                                  config.min_valid_points)
+        except ObservationError as error:
+            raise PipelineInputError(str(error)) from error
+        t1 = time.perf_counter()
+        from pssnet_core.inference import CompletionInputError
+
+        with self._lock:
+            seed = config.seed if config.seed >= 0 else int(self._seed_rng.integers(0, 2**31 - 1))
+            try:
+                completion = self.completer.complete(observation, num_samples=n, seed=seed)
+            except CompletionInputError as error:
+                raise PipelineInputError(str(error)) from error
+        t2 = time.perf_counter()
+        pose = observation.pose
+        completions = [pose.occupied_centres(occ).astype(np.float32) for occ in completion.occupancy]
+        known = pose.occupied_centres(observation.known_occupied).astype(np.float32)
+        t3 = time.perf_counter()
+        grasps = None
+        if compute_grasps:
+            try:
+                grasps = plan_grasps(completion.occupancy, pose, observation.points, replace(config.grasps, seed=seed),
+                                     known_occupied=observation.known_occupied)
+            except GraspError as error:
+                raise PipelineInputError(f"grasp planning failed: {error}") from error
+            grasps = grasps.top(config.grasp_top_k, config.grasp_min_score)
+        t4 = time.perf_counter()
+        timings = {"observe": t1 - t0, "network": t2 - t1, "centres": t3 - t2, "grasps": t4 - t3, "total": t4 - t0}
+        return PipelineResult(observation=observation, voxel_size=grid.voxel_size, known_occupied=known,
+                              completions=completions, occupancy=completion.occupancy, grasps=grasps, up=up,
+                              seed=seed, timings=timings)
+
+    def with_config(self, **changes: Any) -> PipelineConfig:
+        """A copy of the current config with ``changes`` applied and checked against the model."""
+        config = replace(self._config, **changes)
+        self.check_config(config)
+        return config

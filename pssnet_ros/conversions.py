@@ -1,0 +1,269 @@
+"""sensor_msgs <-> numpy without cv_bridge or sensor_msgs_py (neither exists as a wheel).
+
+Images: 32FC1 (metres), 16UC1 (millimetres, or any unit through ``depth_scale``), mono8 and 8UC1, in either
+byte order (``is_bigendian``) and with row padding (``step`` larger than ``width * bytes_per_pixel``).
+Point clouds: (M, 3) points plus an optional per-point ``sample`` index, as x, y, z float32 (+ uint32
+``sample``), and back from any PointCloud2 that has float32/float64 x, y, z fields.
+
+Every malformed message raises :class:`ConversionError` with a message that says what is wrong.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import Pose
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from std_msgs.msg import Header
+
+from pssnet_core.geometry import CameraIntrinsics, ObservationError
+
+
+class ConversionError(ValueError):
+    """A ROS message cannot be converted: wrong encoding, size, data length or fields."""
+
+
+#: encoding -> (numpy dtype without byte order, channels)
+IMAGE_ENCODINGS: dict[str, tuple[str, int]] = {
+    "32FC1": ("f4", 1),
+    "16UC1": ("u2", 1),
+    "mono16": ("u2", 1),
+    "mono8": ("u1", 1),
+    "8UC1": ("u1", 1),
+}
+DEPTH_ENCODINGS: tuple[str, ...] = ("32FC1", "16UC1", "mono16")
+MASK_ENCODINGS: tuple[str, ...] = ("mono8", "8UC1")
+
+_POINTFIELD_DTYPES: dict[int, str] = {
+    PointField.INT8: "i1", PointField.UINT8: "u1", PointField.INT16: "i2", PointField.UINT16: "u2",
+    PointField.INT32: "i4", PointField.UINT32: "u4", PointField.FLOAT32: "f4", PointField.FLOAT64: "f8",
+}
+
+
+def image_to_numpy(msg: Image, allowed: tuple[str, ...] | None = None, name: str = "image") -> np.ndarray:
+    """Decodes a single-channel Image into an (H, W) array in native byte order (a copy, never a view).
+
+    Args:
+        msg: the image.
+        allowed: encodings accepted here (default: every encoding in :data:`IMAGE_ENCODINGS`).
+        name: what the image is, for error messages ("depth", "mask").
+
+    Raises:
+        ConversionError: unknown or disallowed encoding, zero size, step too small, or wrong data length.
+    """
+    allowed = allowed or tuple(IMAGE_ENCODINGS)
+    encoding = msg.encoding
+    if encoding not in allowed or encoding not in IMAGE_ENCODINGS:
+        raise ConversionError(f"{name} has encoding {encoding!r}; supported: {', '.join(allowed)}")
+    height, width = int(msg.height), int(msg.width)
+    if height == 0 or width == 0:
+        raise ConversionError(f"{name} is empty ({width}x{height})")
+    base, channels = IMAGE_ENCODINGS[encoding]
+    dtype = np.dtype(base).newbyteorder(">" if msg.is_bigendian else "<")
+    row_bytes = width * channels * dtype.itemsize
+    step = int(msg.step)
+    if step < row_bytes:
+        raise ConversionError(f"{name} step {step} is smaller than width * bytes per pixel = {row_bytes} "
+                              f"({width} x {encoding})")
+    data = msg.data
+    expected = step * height
+    if len(data) != expected:
+        raise ConversionError(f"{name} data has {len(data)} bytes; {width}x{height} {encoding} with step "
+                              f"{step} needs {expected}")
+    raw = np.frombuffer(memoryview(data), dtype=np.uint8).reshape(height, step)[:, :row_bytes]
+    # ascontiguousarray drops the row padding; astype to the native order copies and swaps bytes if needed.
+    return np.ascontiguousarray(raw).view(dtype).reshape(height, width).astype(dtype.newbyteorder("="))
+
+
+def depth_to_metres(msg: Image, depth_scale: float = 0.001) -> np.ndarray:
+    """Depth image -> (H, W) float32 metres; 0 or NaN stays "no reading".
+
+    Args:
+        msg: 32FC1 (metres) or 16UC1/mono16 (integer units).
+        depth_scale: metres per unit of a 16-bit image (0.001 for millimetres).
+    """
+    if not depth_scale > 0:
+        raise ConversionError(f"depth_scale must be positive, got {depth_scale}")
+    depth = image_to_numpy(msg, DEPTH_ENCODINGS, "depth")
+    if depth.dtype == np.float32:
+        return depth
+    return depth.astype(np.float32) * np.float32(depth_scale)
+
+
+def mask_to_numpy(msg: Image) -> np.ndarray:
+    """Mask image (mono8/8UC1) -> (H, W) bool, non-zero = target object."""
+    return image_to_numpy(msg, MASK_ENCODINGS, "mask") != 0
+
+
+def numpy_to_image(array: np.ndarray, encoding: str, header: Header | None = None, *,
+                   is_bigendian: bool = False, step: int | None = None) -> Image:
+    """Encodes an (H, W) array as an Image.
+
+    Args:
+        array: values; cast to the encoding's type (bool masks become 0/255 for mono8/8UC1).
+        encoding: one of :data:`IMAGE_ENCODINGS`.
+        header: stamp and frame (default: empty).
+        is_bigendian: byte order of the data written.
+        step: row length in bytes (default: no padding); larger values pad each row with zeros.
+    """
+    if encoding not in IMAGE_ENCODINGS:
+        raise ConversionError(f"cannot encode {encoding!r}; supported: {', '.join(IMAGE_ENCODINGS)}")
+    array = np.asarray(array)
+    if array.ndim != 2:
+        raise ConversionError(f"image array must be 2-D, got shape {array.shape}")
+    base, _ = IMAGE_ENCODINGS[encoding]
+    if array.dtype == bool:
+        array = array.astype(np.uint8) * 255
+    dtype = np.dtype(base).newbyteorder(">" if is_bigendian else "<")
+    height, width = array.shape
+    row_bytes = width * dtype.itemsize
+    step = row_bytes if step is None else int(step)
+    if step < row_bytes:
+        raise ConversionError(f"step {step} is smaller than the row size {row_bytes}")
+    buffer = np.zeros((height, step), dtype=np.uint8)
+    buffer[:, :row_bytes] = np.ascontiguousarray(array.astype(dtype)).view(np.uint8).reshape(height, row_bytes)
+    msg = Image()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width, msg.encoding = height, width, encoding
+    msg.is_bigendian = int(is_bigendian)
+    msg.step = step
+    msg.data = buffer.tobytes()
+    return msg
+
+
+def camera_info_to_intrinsics(msg: CameraInfo) -> CameraIntrinsics:
+    """CameraInfo -> pinhole intrinsics from its K matrix.
+
+    Raises:
+        ConversionError: zero image size, or a K matrix with zero/negative/non-finite focal lengths.
+    """
+    if int(msg.width) == 0 or int(msg.height) == 0:
+        raise ConversionError(f"camera_info has image size {msg.width}x{msg.height} (uncalibrated camera?)")
+    k = np.asarray(msg.k, dtype=np.float64)
+    if k.shape != (9,) or not np.any(k):
+        raise ConversionError("camera_info K matrix is all zeros (uncalibrated camera?)")
+    try:
+        return CameraIntrinsics.from_k(k, int(msg.width), int(msg.height))
+    except ObservationError as error:
+        raise ConversionError(f"camera_info: {error}") from error
+
+
+def intrinsics_to_camera_info(intrinsics: CameraIntrinsics, header: Header | None = None) -> CameraInfo:
+    """Pinhole intrinsics -> CameraInfo (no distortion, P = [K | 0])."""
+    msg = CameraInfo()
+    if header is not None:
+        msg.header = header
+    msg.width, msg.height = intrinsics.width, intrinsics.height
+    msg.distortion_model = "plumb_bob"
+    msg.d = [0.0] * 5
+    k = intrinsics.matrix()
+    msg.k = k.reshape(-1).tolist()
+    msg.r = np.eye(3).reshape(-1).tolist()
+    msg.p = np.hstack([k, np.zeros((3, 1))]).reshape(-1).tolist()
+    return msg
+
+
+def points_to_pointcloud2(points: np.ndarray, header: Header | None = None,
+                          sample: np.ndarray | None = None) -> PointCloud2:
+    """(M, 3) points (+ optional (M,) per-point sample index) -> unorganised PointCloud2.
+
+    Fields: x, y, z float32 at offsets 0, 4, 8 and, when ``sample`` is given, ``sample`` uint32 at 12.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ConversionError(f"points must have shape (M, 3), got {points.shape}")
+    fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
+    names, formats = ["x", "y", "z"], ["<f4", "<f4", "<f4"]
+    if sample is not None:
+        sample = np.asarray(sample)
+        if sample.shape != (len(points),):
+            raise ConversionError(f"sample must have shape ({len(points)},), got {sample.shape}")
+        if len(sample) and (sample.min() < 0 or not np.issubdtype(sample.dtype, np.integer)):
+            raise ConversionError("sample indices must be non-negative integers")
+        fields.append(PointField(name="sample", offset=12, datatype=PointField.UINT32, count=1))
+        names.append("sample")
+        formats.append("<u4")
+    record = np.dtype({"names": names, "formats": formats})
+    data = np.empty(len(points), dtype=record)
+    for i, n in enumerate("xyz"):
+        data[n] = points[:, i]
+    if sample is not None:
+        data["sample"] = sample
+    msg = PointCloud2()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = 1, len(points)
+    msg.fields = fields
+    msg.is_bigendian = False
+    msg.point_step = record.itemsize
+    msg.row_step = record.itemsize * len(points)
+    msg.is_dense = bool(np.all(np.isfinite(points))) if len(points) else True
+    msg.data = data.tobytes()
+    return msg
+
+
+def pointcloud2_to_numpy(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
+    """PointCloud2 -> ((M, 3) float64 points, (M,) int64 ``sample`` index or None when the field is absent).
+
+    Reads any layout (field offsets, padding in ``point_step``/``row_step``, either byte order) as long as
+    x, y, z are float32 or float64.
+
+    Raises:
+        ConversionError: missing x/y/z, unsupported field type, or a data length that does not match.
+    """
+    order = ">" if msg.is_bigendian else "<"
+    by_name = {f.name: f for f in msg.fields}
+    for axis in "xyz":
+        if axis not in by_name:
+            raise ConversionError(f"point cloud has no {axis!r} field (fields: {sorted(by_name)})")
+        if by_name[axis].datatype not in (PointField.FLOAT32, PointField.FLOAT64):
+            raise ConversionError(f"point cloud field {axis!r} must be float32 or float64")
+    wanted = [n for n in ("x", "y", "z", "sample") if n in by_name]
+    for n in wanted:
+        if by_name[n].datatype not in _POINTFIELD_DTYPES:
+            raise ConversionError(f"point cloud field {n!r} has unknown datatype {by_name[n].datatype}")
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    height, width = int(msg.height), int(msg.width)
+    for n in wanted:
+        end = by_name[n].offset + np.dtype(_POINTFIELD_DTYPES[by_name[n].datatype]).itemsize
+        if end > point_step:
+            raise ConversionError(f"point cloud field {n!r} ends at byte {end}, beyond point_step {point_step}")
+    if row_step < point_step * width:
+        raise ConversionError(f"point cloud row_step {row_step} < point_step {point_step} x width {width}")
+    if len(msg.data) != row_step * height:
+        raise ConversionError(f"point cloud data has {len(msg.data)} bytes; expected row_step {row_step} x "
+                              f"height {height} = {row_step * height}")
+    record = np.dtype({"names": wanted,
+                       "formats": [order + _POINTFIELD_DTYPES[by_name[n].datatype] for n in wanted],
+                       "offsets": [by_name[n].offset for n in wanted], "itemsize": point_step})
+    if height * width == 0:
+        return np.zeros((0, 3)), (np.zeros(0, dtype=np.int64) if "sample" in by_name else None)
+    raw = np.frombuffer(memoryview(msg.data), dtype=np.uint8).reshape(height, row_step)[:, :point_step * width]
+    cloud = np.ascontiguousarray(raw).view(record).reshape(-1)
+    points = np.stack([cloud[a].astype(np.float64) for a in "xyz"], axis=1)
+    sample = cloud["sample"].astype(np.int64) if "sample" in by_name else None
+    return points, sample
+
+
+def matrix_to_pose(matrix: np.ndarray) -> Pose:
+    """4x4 rigid transform -> geometry_msgs/Pose (position + unit quaternion)."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ConversionError(f"pose must be a finite 4x4 matrix, got shape {matrix.shape}")
+    x, y, z, w = Rotation.from_matrix(matrix[:3, :3]).as_quat()
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in matrix[:3, 3])
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in (x, y, z, w))
+    return pose
+
+
+def pose_to_matrix(pose: Pose) -> np.ndarray:
+    """geometry_msgs/Pose -> 4x4 rigid transform."""
+    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
+    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+        raise ConversionError(f"pose orientation is not a valid quaternion: {q.tolist()}")
+    matrix = np.eye(4)
+    matrix[:3, :3] = Rotation.from_quat(q).as_matrix()
+    matrix[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    return matrix

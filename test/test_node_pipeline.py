@@ -1,0 +1,181 @@
+"""The ROS-free pipeline the node calls: geometry of the outputs, input errors, seeds, support-plane up vector."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from test_node_helpers import render_mug_scene, tiny_checkpoint
+
+from pssnet_core.geometry import CameraIntrinsics, GridConfig, ObservationError
+from pssnet_core.inference import CompletionResult
+from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineInputError
+from pssnet_core.support_plane import fit_support_plane
+
+
+class EchoCompleter:
+    """Stand-in model: every sample is the known-occupied grid (to check the coordinate plumbing exactly)."""
+
+    def __init__(self, grid_size: int = 32, voxel_size: float | None = None) -> None:
+        self.grid_size = grid_size
+        self.model_name = "echo"
+        self.info = {"voxel_size": voxel_size} if voxel_size else {}
+        self.calls: list[tuple[int, int]] = []
+
+    def complete(self, observation, num_samples: int, seed: int) -> CompletionResult:
+        self.calls.append((num_samples, seed))
+        occupancy = np.repeat(observation.known_occupied[None], num_samples, axis=0)
+        return CompletionResult(occupancy.astype(np.float32), occupancy, self.grid_size, seed, "echo", 0.0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return render_mug_scene(seed=0)
+
+
+@pytest.fixture(scope="module")
+def tiny_pipeline(tmp_path_factory):
+    path = tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
+    return CompletionPipeline.from_checkpoint(path, PipelineConfig(num_samples=4), threads=1)
+
+
+def test_outputs_are_voxel_centres_around_the_observed_points(scene):
+    pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(num_samples=3, up_vector=tuple(scene.up)))
+    result = pipeline.run(scene.depth, scene.mask, scene.intrinsics)
+    assert result.num_samples == 3 and result.voxel_size == GridConfig().voxel_size
+    observed = result.observation.points
+    half_diagonal = 0.5 * np.sqrt(3) * result.voxel_size
+    for centres in [result.known_occupied, *result.completions]:
+        assert centres.dtype == np.float32 and centres.shape[1] == 3
+        distance, _ = cKDTree(centres).query(observed)
+        assert distance.max() <= half_diagonal + 1e-6  # every observed point lies in one of the voxels
+    points, index = result.merged()
+    assert len(points) == 3 * len(result.known_occupied) and set(index.tolist()) == {0, 1, 2}
+    assert set(result.timings) == {"observe", "network", "centres", "grasps", "total"}
+
+
+def test_real_model_seeds_and_sample_counts(tiny_pipeline, scene):
+    up = {"up_vector": tuple(scene.up)}
+    tiny_pipeline.config = tiny_pipeline.with_config(**up)
+    a = tiny_pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=False)
+    assert a.num_samples == 4 and a.occupancy.shape == (4, 32, 32, 32) and a.seed == 0
+    b = tiny_pipeline.run(scene.depth, scene.mask, scene.intrinsics, num_samples=2, compute_grasps=False)
+    assert b.num_samples == 2
+    np.testing.assert_array_equal(a.occupancy[:2], b.occupancy)  # same seed, same first samples
+    tiny_pipeline.config = tiny_pipeline.with_config(seed=-1, seed_base=3)
+    c = tiny_pipeline.run(scene.depth, scene.mask, scene.intrinsics, num_samples=2, compute_grasps=False)
+    d = tiny_pipeline.run(scene.depth, scene.mask, scene.intrinsics, num_samples=2, compute_grasps=False)
+    assert c.seed != d.seed
+    tiny_pipeline.config = tiny_pipeline.with_config(seed=0)
+
+
+def bad_inputs(scene):
+    depth, mask, intr = scene.depth, scene.mask, scene.intrinsics
+    tiny_mask = np.zeros_like(mask)
+    tiny_mask[200:203, 300:303] = 255
+    nan_depth = depth.copy()
+    nan_depth[mask > 0] = np.nan
+    zero_depth = np.where(mask > 0, 0.0, depth).astype(np.float32)
+    return [
+        ("empty mask", (depth, np.zeros_like(mask), intr, None),
+         r"mask is empty: 0 pixels marked, need at least 50 \(min_mask_pixels\)"),
+        ("tiny mask", (depth, tiny_mask, intr, None), "mask is too small: 9 pixels marked, need at least 50"),
+        ("size mismatch", (depth, mask[:, :320], intr, None), "mask is 320x480 but depth is 640x480"),
+        ("camera size", (depth, mask, CameraIntrinsics.kinect_like(320, 240), None),
+         "depth is 640x480 but camera_info says 320x240"),
+        ("nan depth", (nan_depth, mask, intr, None), r"depth has no finite reading inside the mask \(all NaN/Inf\)"),
+        ("no valid depth", (zero_depth, mask, intr, None),
+         r"only 0 of \d+ masked pixels have a valid depth in \[0.1, 5.0\] m \(need at least 20\)"),
+        ("absurd samples", (depth, mask, intr, 4_000_000_000),
+         r"num_samples 4000000000 is out of range: ask for 1..100 \(max_num_samples\)"),
+        ("integer depth", (depth.astype(np.uint16), mask, intr, None), "depth must be float metres, got dtype uint16"),
+    ]
+
+
+def test_bad_input_raises_exact_messages(scene):
+    pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(up_vector=tuple(scene.up)))
+    for name, (depth, mask, intr, n), message in bad_inputs(scene):
+        with pytest.raises(PipelineInputError) as info:
+            pipeline.run(depth, mask, intr, num_samples=n)
+        assert re.search(message, str(info.value)), f"{name}: {info.value}"
+    looking_down = PipelineConfig(up_vector=(0.0, 0.0, -1.0))
+    pipeline.config = looking_down
+    with pytest.raises(PipelineInputError, match="camera looks .almost. straight along the up vector"):
+        pipeline.run(scene.depth, scene.mask, scene.intrinsics)
+
+
+def test_config_must_fit_the_model():
+    pipeline = CompletionPipeline(EchoCompleter(voxel_size=0.005))
+    assert pipeline.grid_config().voxel_size == 0.005  # voxel_size 0 = the model's
+    with pytest.raises(ValueError, match="voxel_size 0.01 m differs from the 0.005 m the model was trained with"):
+        pipeline.config = PipelineConfig(voxel_size=0.01)
+    with pytest.raises(ValueError, match=r"grid margins must be in \[0, size/2\)"):
+        CompletionPipeline(EchoCompleter(grid_size=16), PipelineConfig(front_margin=8.0))
+    with pytest.raises(ValueError, match="num_samples must be in"):
+        PipelineConfig(num_samples=200)
+
+
+def test_support_plane_gives_the_true_up_vector(scene):
+    level_prior = np.array([0.0, -1.0, 0.0])  # the camera is really tilted down by 30 degrees
+    plane = fit_support_plane(scene.depth, scene.mask, scene.intrinsics, level_prior)
+    angle = np.degrees(np.arccos(np.clip(plane.up @ scene.up, -1, 1)))
+    assert angle < 1.0 and 29.0 < plane.tilt_deg < 31.0
+    pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(estimate_up=True))
+    result = pipeline.run(scene.depth, scene.mask, scene.intrinsics)
+    assert np.degrees(np.arccos(np.clip(result.up @ scene.up, -1, 1))) < 1.0
+
+
+def test_support_plane_failure_is_explained():
+    scene = render_mug_scene(seed=0)
+    floating = np.where(scene.mask > 0, scene.depth, 0.0).astype(np.float32)  # nothing around the object
+    with pytest.raises(ObservationError, match="support plane estimation failed: only 0 valid readings"):
+        fit_support_plane(floating, scene.mask, scene.intrinsics, scene.up)
+    pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(estimate_up=True))
+    with pytest.raises(PipelineInputError, match="support plane estimation failed"):
+        pipeline.run(floating, scene.mask, scene.intrinsics)
+
+
+def test_duck_typed_grid_config_is_read():
+    completer = EchoCompleter()
+    completer.grid_config = SimpleNamespace(voxel_size=0.004)
+    assert CompletionPipeline(completer).grid_config().voxel_size == 0.004
+
+
+class TruthCompleter(EchoCompleter):
+    """Stand-in model: every sample is the ground-truth shape (so grasps exist and hold for all samples)."""
+
+    def __init__(self, view, shape) -> None:
+        super().__init__()
+        self.view, self.shape = view, shape
+
+    def complete(self, observation, num_samples: int, seed: int) -> CompletionResult:
+        from pssnet_core.data.scenes import ground_truth_occupancy
+
+        truth = ground_truth_occupancy(self.shape, self.view.object_pose, observation.pose, self.view.camera_pose)
+        occupancy = np.repeat(truth[None], num_samples, axis=0)
+        return CompletionResult(occupancy.astype(np.float32), occupancy, self.grid_size, seed, "truth", 0.0)
+
+
+def test_grasps_are_ranked_camera_frame_poses_around_the_object(scene):
+    from pssnet_core.shapes import make_shape
+
+    shape = make_shape("mug", 2_000_000)
+    config = PipelineConfig(num_samples=4, up_vector=tuple(scene.up), grasp_top_k=5)
+    pipeline = CompletionPipeline(TruthCompleter(scene, shape), config)
+    result = pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=True)
+    grasps = result.grasps
+    assert 1 <= len(grasps) <= 5 and grasps.num_completions == 4
+    assert np.all(np.diff(grasps.scores) <= 0) and grasps.scores[0] == 1.0  # the truth is graspable
+    rotations = grasps.poses[:, :3, :3]
+    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rotations.shape),
+                               atol=1e-6)
+    centre = result.observation.points.mean(axis=0)
+    assert np.all(np.linalg.norm(grasps.poses[:, :3, 3] - centre, axis=1) < 0.15)
+    assert np.all((grasps.widths > 0) & (grasps.widths <= config.grasps.gripper.max_opening))
+    assert pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=False).grasps is None
+    strict = CompletionPipeline(TruthCompleter(scene, shape), replace(config, grasp_min_score=1.0, grasp_top_k=100))
+    assert np.all(strict.run(scene.depth, scene.mask, scene.intrinsics).grasps.scores == 1.0)

@@ -1,0 +1,103 @@
+"""Node parameters: descriptors with ranges, validation rules with reasons, YAML defaults, rclpy enforcement."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+from rcl_interfaces.msg import ParameterType
+
+from pssnet_core.pipeline import PipelineConfig
+from pssnet_ros.params import PARAMETERS, SPECS, check_values, default_yaml, defaults, markdown_table, pipeline_config
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "completion_node.yaml"
+
+
+def test_yaml_lists_every_parameter_with_its_default():
+    values = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]
+    assert values == defaults()
+    assert CONFIG.read_text() == default_yaml(), "regenerate config/completion_node.yaml from params.default_yaml()"
+    for spec in PARAMETERS:  # doubles must stay doubles in YAML, or rclpy rejects the type
+        if spec.ros_type == ParameterType.PARAMETER_DOUBLE:
+            assert isinstance(values[spec.name], float), spec.name
+
+
+def test_defaults_are_valid_and_build_the_pipeline_config():
+    assert check_values(defaults()) is None
+    config = pipeline_config(defaults())
+    assert isinstance(config, PipelineConfig) and config.num_samples == 20 and config.up_vector == (0.0, -1.0, 0.0)
+
+
+def test_descriptors_carry_type_range_and_read_only():
+    d = SPECS["num_samples"].descriptor()
+    assert d.type == ParameterType.PARAMETER_INTEGER and d.description
+    assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (1, 1000)
+    d = SPECS["sync_tolerance"].descriptor()
+    assert d.type == ParameterType.PARAMETER_DOUBLE and d.floating_point_range[0].to_value == 10.0
+    assert SPECS["model_path"].descriptor().read_only and SPECS["device"].descriptor().read_only
+    assert "one of: cpu, cuda" in SPECS["device"].descriptor().additional_constraints
+    assert SPECS["up_vector"].descriptor().type == ParameterType.PARAMETER_DOUBLE_ARRAY
+    for spec in PARAMETERS:
+        assert spec.description, spec.name
+        if spec.ros_type in (ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_DOUBLE):
+            assert spec.low is not None and spec.low <= spec.default <= spec.high, spec.name
+
+
+@pytest.mark.parametrize("changes, reason", [
+    ({"num_samples": 200}, r"num_samples \(200\) must not exceed max_num_samples \(100\)"),
+    ({"num_samples": 0}, r"num_samples must be in \[1, 1000\], got 0"),
+    ({"min_depth": 2.0, "max_depth": 1.0}, r"min_depth \(2.0\) must be smaller than max_depth \(1.0\)"),
+    ({"device": "tpu"}, "device must be one of cpu, cuda, got 'tpu'"),
+    ({"up_vector": [0.0, 0.0, 0.0]}, "up_vector must be 3 finite numbers, not all zero"),
+    ({"up_vector": [0.0, 1.0]}, "up_vector must be 3 finite numbers"),
+    ({"up_vector": [0.0, float("nan"), 1.0]}, "up_vector must be 3 finite numbers"),
+    ({"max_rate_hz": float("inf")}, "max_rate_hz must be finite"),
+    ({"sync_tolerance": -0.1}, r"sync_tolerance must be in \[0, 10\]"),
+    ({"continuous": 1}, "continuous must be a bool, got 1"),
+    ({"seed": 1.5}, "seed must be an int, got 1.5"),
+    ({"nonsense": 1}, "unknown parameter 'nonsense'"),
+    ({"grasp_clearance": 0.05}, r"clearance must be in \[0, max_opening/2\) m, got 0.05"),
+    ({"grasp_top_yaws": 0, "grasp_side_yaws": 0}, "no approach direction"),
+])
+def test_invalid_values_are_rejected_with_a_reason(changes, reason):
+    values = {**defaults(), **changes}
+    result = check_values(values)
+    assert result is not None
+    assert re.search(reason, result), result
+
+
+def test_markdown_table_has_every_parameter():
+    table = markdown_table()
+    for spec in PARAMETERS:
+        assert f"| `{spec.name}` |" in table
+
+
+@pytest.fixture(scope="module")
+def param_node():
+    """A bare node in this process with the parameters declared (no DDS traffic needed)."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=101, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("param_test", context=context)
+    for spec in PARAMETERS:
+        default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+        node.declare_parameter(spec.name, default, spec.descriptor())
+    yield node
+    node.destroy_node()
+    context.try_shutdown()
+
+
+def test_rclpy_enforces_descriptor_ranges_types_and_read_only(param_node):
+    from rclpy.parameter import Parameter
+
+    results = param_node.set_parameters([
+        Parameter("num_samples", value=5000), Parameter("sync_tolerance", value="fast"),
+        Parameter("model_path", value="/tmp/other.pt"), Parameter("num_samples", value=30)])
+    assert not results[0].successful and "out of range" in results[0].reason
+    assert not results[1].successful and "type" in results[1].reason.lower()
+    assert not results[2].successful and "read-only" in results[2].reason
+    assert results[3].successful and param_node.get_parameter("num_samples").value == 30
