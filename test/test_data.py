@@ -275,7 +275,10 @@ def test_specs_defaults_splits_and_errors():
     assert test["ycb_narrow"].slit_width_m == pytest.approx(0.036) and test["ycb_wide"].slit_width_m == 0.18
     train_ids = {str(i) for s in train.values() for i in s.object_identities()}
     test_ids = {str(i) for s in test.values() for i in s.object_identities()}
-    assert not train_ids & test_ids
+    val = {s.name: s for s in dataset_specs("all", "val")}
+    val_ids = {str(i) for s in val.values() for i in s.object_identities()}
+    assert not train_ids & test_ids and not val_ids & (train_ids | test_ids)
+    assert set(val) == {"mugs", "ycb"} and val["ycb"].slit_mode == "random"  # validated like training
     # Narrow and wide test sets show the same objects in the same poses.
     a, b = (dataclasses.replace(test[n], num_objects=1) for n in ("ycb_narrow", "ycb_wide"))
     ident = a.object_identities()[0]
@@ -286,6 +289,8 @@ def test_specs_defaults_splits_and_errors():
     assert spec_roundtrip(train["ycb"]) == train["ycb"]
     with pytest.raises(DatasetSpecError, match="family"):
         dataset_specs("chairs", "train")
+    with pytest.raises(DatasetSpecError, match="split"):
+        dataset_specs("mugs", "holdout")
     with pytest.raises(DatasetSpecError, match="views must be at most"):
         dataset_specs("ycb", "train", views=25)
     with pytest.raises(DatasetSpecError, match="num_objects"):

@@ -96,3 +96,30 @@ def test_corrupt_shard_is_reported(dataset):
     (reader.root / "shards" / "00001.npz").write_bytes(b"garbage")
     with pytest.raises(DatasetError, match="00001.npz is unreadable"):
         list(reader.iter_batches(3, shuffle=False))
+
+
+def test_several_directories_read_as_one_dataset(tmp_path):
+    parts = []
+    for name, first, count, voxel in (("a", 0, 5, 0.025), ("b", 100, 4, 0.025), ("c", 200, 2, 0.05)):
+        writer = DatasetWriter(tmp_path / name, {"grid_size": 8, "voxel_size": voxel}, shard_size=3)
+        samples = [make_sample(first + i) for i in range(count)]
+        for s in samples:
+            writer.add(s)
+        writer.close()
+        parts.append(samples)
+    reader = DatasetReader(f"{tmp_path / 'a'},{tmp_path / 'b'}")
+    assert len(reader) == 9 and reader.num_shards == 4 and reader.grid_size == 8
+    expected = parts[0] + parts[1]
+    for i in (0, 4, 5, 8):  # both sides of the boundary between the two directories
+        got = reader.get(i)
+        assert got["identity"] == expected[i]["identity"]
+        np.testing.assert_array_equal(got["occupancy"], expected[i]["occupancy"])
+    seen = np.concatenate([b["index"] for b in reader.iter_batches(2, shuffle=True, seed=1)])
+    assert sorted(seen.tolist()) == list(range(9))
+    boxes = {int(i): b["box"][k] for b in reader.iter_batches(4, seed=3) for k, i in enumerate(b["index"])}
+    for i, box in boxes.items():
+        np.testing.assert_array_equal(box, expected[i]["box"])
+    with pytest.raises(DatasetError, match="voxel_size"):
+        DatasetReader([tmp_path / "a", tmp_path / "c"])
+    with pytest.raises(DatasetError, match="no dataset"):
+        DatasetReader(" , ")

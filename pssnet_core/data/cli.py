@@ -71,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    "test: OUT/test/mugs, OUT/test/ycb_narrow, OUT/test/ycb_wide. Shards already "
                                    "on disk are kept, so running the same command again resumes.")
     b.add_argument("--family", choices=("mugs", "ycb", "all"), default="all")
-    b.add_argument("--split", choices=("train", "test"), default="train")
+    b.add_argument("--split", choices=("train", "val", "test"), default="train")
     b.add_argument("--out", required=True, help="build root directory")
     b.add_argument("--grid", type=int, default=32, help="grid voxels per edge (grid spans 0.20 m); default 32")
     b.add_argument("--workers", type=int, default=1, help="processes (each uses one core); default 1")

@@ -60,6 +60,7 @@ MAX_ATTEMPTS = 20
 DEFAULT_OBJECTS: dict[tuple[str, str], int] = {
     ("mugs", "train"): 120, ("ycb", "train"): 300,
     ("mugs", "test"): 12, ("ycb_narrow", "test"): 12, ("ycb_wide", "test"): 12,
+    ("mugs", "val"): 6, ("ycb", "val"): 16,
 }
 
 
@@ -210,7 +211,8 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
 
     Args:
         family: "mugs", "ycb" or "all".
-        split: "train" or "test"; the ycb test split is two datasets, ``ycb_narrow`` and ``ycb_wide``.
+        split: "train", "val" or "test"; "val" is built like "train" (random slits) from its own objects, to
+            validate during training; the ycb test split is two datasets, ``ycb_narrow`` and ``ycb_wide``.
         grid_size: voxels per grid edge (32 or 64 in the paper's experiments).
         seed: master seed.
         num_objects: overrides the default number of objects of every dataset.
@@ -221,8 +223,8 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
     """
     if family not in ("mugs", "ycb", "all"):
         raise DatasetSpecError(f"family must be mugs, ycb or all, got {family!r}")
-    if split not in ("train", "test"):
-        raise DatasetSpecError(f"split must be train or test, got {split!r}")
+    if split not in ("train", "val", "test"):
+        raise DatasetSpecError(f"split must be train, val or test, got {split!r}")
     common: dict[str, Any] = {"split": split, "grid_size": grid_size, "seed": seed, "noise": noise}
     if front_margin is not None:
         common["front_margin"] = float(front_margin)
@@ -233,9 +235,9 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         specs.append(DatasetSpec(name="mugs", families=("mug",), views=MUG_VIEWS,
                                  num_objects=DEFAULT_OBJECTS[("mugs", split)], objects_per_shard=4, **common))
     if family in ("ycb", "all"):
-        if split == "train":
+        if split in ("train", "val"):
             specs.append(DatasetSpec(name="ycb", families=YCB_FAMILIES, views=YCB_ROTATIONS, slit_mode="random",
-                                     num_objects=DEFAULT_OBJECTS[("ycb", "train")], objects_per_shard=12, **common))
+                                     num_objects=DEFAULT_OBJECTS[("ycb", split)], objects_per_shard=12, **common))
         else:
             for name, width in (("ycb_narrow", NARROW_SLIT_M), ("ycb_wide", WIDE_SLIT_M)):
                 specs.append(DatasetSpec(

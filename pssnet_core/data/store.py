@@ -114,6 +114,25 @@ def finalize(root: str | Path, meta: dict[str, Any]) -> int:
     return len(records)
 
 
+def _split_roots(root: str | Path | Sequence[str | Path]) -> list[str | Path]:
+    if isinstance(root, Path):
+        return [root]
+    if isinstance(root, str):
+        return [part.strip() for part in root.split(",") if part.strip()]
+    return list(root)
+
+
+def _read_index(root: Path) -> dict[str, Any]:
+    index_path = root / INDEX_FILE
+    if not index_path.exists():
+        raise DatasetError(f"{root} is not a dataset: {INDEX_FILE} is missing (build it with "
+                           "`pssnet dataset build`)")
+    try:
+        return json.loads(index_path.read_text())
+    except json.JSONDecodeError as error:
+        raise DatasetError(f"{index_path} is corrupt: {error}") from error
+
+
 class DatasetWriter:
     """Sequential writer: buffers samples and writes a shard every ``shard_size`` samples."""
 
@@ -145,21 +164,33 @@ class DatasetWriter:
 
 
 class DatasetReader:
-    """Reads a dataset directory written by :class:`DatasetWriter` or :func:`write_shard` + :func:`finalize`."""
+    """Reads a dataset directory written by :class:`DatasetWriter` or :func:`write_shard` + :func:`finalize`.
 
-    def __init__(self, root: str | Path) -> None:
-        self.root = Path(root)
-        index_path = self.root / INDEX_FILE
-        if not index_path.exists():
-            raise DatasetError(f"{self.root} is not a dataset: {INDEX_FILE} is missing (build it with "
-                               "`pssnet dataset build`)")
-        try:
-            index = json.loads(index_path.read_text())
-        except json.JSONDecodeError as error:
-            raise DatasetError(f"{index_path} is corrupt: {error}") from error
-        self.meta: dict[str, Any] = index["meta"]
-        self.records: list[dict[str, Any]] = index["records"]
-        self._shards: list[dict[str, int]] = index["shards"]
+    ``root`` may also be several dataset directories (a sequence, or one string of paths joined by commas):
+    they are read as one dataset, their samples numbered in the order given (e.g. mugs then ycb, to train one
+    model on all families). They must share grid size and voxel size; ``meta`` is the first one's.
+    """
+
+    def __init__(self, root: str | Path | Sequence[str | Path]) -> None:
+        roots = [Path(r) for r in _split_roots(root)]
+        if not roots:
+            raise DatasetError("no dataset directory given")
+        self.roots = roots
+        self.root = roots[0]
+        self.records: list[dict[str, Any]] = []
+        self._shards: list[dict[str, Any]] = []  # id, first (global sample number), count, root
+        for path in roots:
+            index = _read_index(path)
+            if not self._shards:
+                self.meta: dict[str, Any] = index["meta"]
+            else:
+                for key in ("grid_size", "voxel_size"):
+                    if index["meta"].get(key) != self.meta.get(key):
+                        raise DatasetError(f"{path} has {key} {index['meta'].get(key)}, but {self.root} has "
+                                           f"{self.meta.get(key)}: datasets read together must match")
+            offset = len(self.records)
+            self._shards.extend({**s, "first": s["first"] + offset, "root": path} for s in index["shards"])
+            self.records.extend(index["records"])
         self._cache: tuple[tuple[int, bool], dict[str, np.ndarray]] | None = None
 
     def __len__(self) -> int:
@@ -183,7 +214,7 @@ class DatasetReader:
 
         Variable-shape arrays (with ``images=True``) come back as object arrays of per-sample arrays.
         """
-        grids_path, images_path = _shard_paths(self.root, self._shards[shard]["id"])
+        grids_path, images_path = _shard_paths(self._shards[shard]["root"], self._shards[shard]["id"])
         out: dict[str, np.ndarray] = {}
         try:
             with np.load(grids_path) as data:

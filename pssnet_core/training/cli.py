@@ -19,7 +19,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Trains a model on a dataset written by `pssnet dataset build`; writes last.pt (resumable), "
                     "best.pt, CSV logs and loss_curves.png to --out.")
     p.add_argument("--model", required=True, choices=model_names())
-    p.add_argument("--data", required=True, help="training dataset directory")
+    p.add_argument("--data", required=True,
+                   help="training dataset directory; several joined by commas are read as one (e.g. mugs,ycb)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--val-data", default=None, help="validation dataset (default: a slice of --data)")
     p.add_argument("--epochs", type=int, default=10)
