@@ -165,7 +165,7 @@ def _surface(grid: np.ndarray) -> np.ndarray:
     return np.argwhere(grid & ~interior)
 
 
-def _draw_voxels(ax: Any, grid: np.ndarray, title: str, color: str) -> None:
+def draw_voxels(ax: Any, grid: np.ndarray, title: str, color: str) -> None:
     pts = _surface(grid)
     n = grid.shape[0]
     if len(pts):
@@ -199,7 +199,7 @@ def plot_samples_vs_plausible(path: str | Path, examples: Sequence[KeptExample],
         # Spread the samples shown over the set: the most diverse-looking choice without extra computation.
         picks = np.linspace(0, len(ex.samples) - 1, min(max_samples, len(ex.samples))).round().astype(int)
         ax = fig.add_subplot(2 * len(chosen), cols, 2 * k * cols + 1, projection="3d")
-        _draw_voxels(ax, ex.plausible[0], f"{ex.set_name} #{ex.index}\nground truth", "tab:green")
+        draw_voxels(ax, ex.plausible[0], f"{ex.set_name} #{ex.index}\nground truth", "tab:green")
         ax = fig.add_subplot(2 * len(chosen), cols, (2 * k + 1) * cols + 1, projection="3d")
         ax.axis("off")
         ax.text2D(0.05, 0.5, f"delta {ex.delta * 100:g} cm\n{len(ex.plausible)} plausible\nshapes", fontsize=7,
@@ -207,9 +207,9 @@ def plot_samples_vs_plausible(path: str | Path, examples: Sequence[KeptExample],
         for c, s in enumerate(picks):
             nearest = int(np.argmin(ex.distances[s]))
             ax = fig.add_subplot(2 * len(chosen), cols, 2 * k * cols + 2 + c, projection="3d")
-            _draw_voxels(ax, ex.samples[s], f"{method} sample {s}", "tab:blue")
+            draw_voxels(ax, ex.samples[s], f"{method} sample {s}", "tab:blue")
             ax = fig.add_subplot(2 * len(chosen), cols, (2 * k + 1) * cols + 2 + c, projection="3d")
-            _draw_voxels(ax, ex.plausible[nearest],
+            draw_voxels(ax, ex.plausible[nearest],
                          f"nearest plausible #{nearest}\n{ex.distances[s, nearest] * 1000:.1f} mm", "tab:orange")
     fig.tight_layout()
     path = Path(path)
