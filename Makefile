@@ -7,7 +7,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export FASTRTPS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_profile.xml
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup demo test test-slow lint colcon clean
+.PHONY: setup demo test test-slow lint colcon clean datasets train-all results
 
 setup:
 	@bash scripts/setup.sh
@@ -30,3 +30,33 @@ colcon: setup
 
 clean:
 	rm -rf build install log
+
+# ---- Research pipeline (README "Reproduce the evaluation"): datasets -> four models -> table and plots.
+DATA ?= data/d32
+RUNS ?= runs
+TRAIN_MINUTES ?= 40
+EVAL_OBSERVATIONS ?= 72
+MODELS := pssnet vae vae_gan recgan
+PSSNET := $(VENV)/bin/pssnet
+
+datasets: setup
+	$(PSSNET) dataset build --family all --split train --out $(DATA) --grid 32 --workers 2
+	$(PSSNET) dataset build --family all --split val --out $(DATA) --grid 32 --workers 2
+	$(PSSNET) dataset build --family all --split test --out $(DATA) --grid 32 --workers 2
+
+# Every model gets the same budget: TRAIN_MINUTES of wall clock on one CPU thread (two runs side by side on
+# a 2-core machine: `make -j2 train-pssnet train-vae`), validated on the val split every 500 steps.
+train-%: setup
+	$(PSSNET) train --model $* --data $(DATA)/train/mugs,$(DATA)/train/ycb \
+	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/$*32 --epochs 30 \
+	  --max-minutes $(TRAIN_MINUTES) --threads 1 --val-every 500 --no-progress --seed 0
+
+train-all: $(addprefix train-,$(MODELS))
+
+results: setup
+	$(PSSNET) evaluate --models pssnet,vae,vae_gan,recgan \
+	  --checkpoints $(RUNS)/pssnet32/best.pt,$(RUNS)/vae32/best.pt,$(RUNS)/vae_gan32/best.pt,$(RUNS)/recgan32/best.pt \
+	  --data $(DATA)/test --samples 100 --max-observations $(EVAL_OBSERVATIONS) --workers 2 --out results --no-progress
+	$(PSSNET) handles --models pssnet,vae,vae_gan,recgan \
+	  --checkpoints $(RUNS)/pssnet32/best.pt,$(RUNS)/vae32/best.pt,$(RUNS)/vae_gan32/best.pt,$(RUNS)/recgan32/best.pt \
+	  --data $(DATA)/test --samples 20 --out results/handles --no-progress
