@@ -35,7 +35,7 @@ clean:
 DATA ?= data/d32
 RUNS ?= runs
 TRAIN_MINUTES ?= 40
-EVAL_OBSERVATIONS ?= 72
+EVAL_OBSERVATIONS ?= 48
 MODELS := pssnet vae vae_gan recgan
 PSSNET := $(VENV)/bin/pssnet
 
@@ -56,7 +56,7 @@ train-all: $(addprefix train-,$(MODELS))
 results: setup
 	$(PSSNET) evaluate --models pssnet,vae,vae_gan,recgan \
 	  --checkpoints $(RUNS)/pssnet32/best.pt,$(RUNS)/vae32/best.pt,$(RUNS)/vae_gan32/best.pt,$(RUNS)/recgan32/best.pt \
-	  --data $(DATA)/test --samples 100 --max-observations $(EVAL_OBSERVATIONS) --workers 2 --out results --no-progress
+	  --data $(DATA)/test --samples 100 --max-observations $(EVAL_OBSERVATIONS) --dense-mugs 1 --workers 2 --out results --no-progress
 	$(PSSNET) handles --models pssnet,vae,vae_gan,recgan \
 	  --checkpoints $(RUNS)/pssnet32/best.pt,$(RUNS)/vae32/best.pt,$(RUNS)/vae_gan32/best.pt,$(RUNS)/recgan32/best.pt \
 	  --data $(DATA)/test --samples 20 --out results/handles --no-progress

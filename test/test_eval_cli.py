@@ -113,3 +113,14 @@ def test_bad_inputs(tiny_data, tiny_checkpoint, tmp_path, capsys):
     assert main(["plausible", "--data", str(tiny_data), "--sets", "cats"]) == 2
     with pytest.raises(ValueError, match="checkpoints for"):
         resolve_checkpoints(["vae", "recgan"], str(tiny_checkpoint / "vae.pt"))
+
+
+def test_dense_mug_views_pick_a_full_turn_of_the_first_handled_mugs():
+    from pssnet_core.evaluation.cli import EvaluationCliError, _dense_mug_views
+
+    views = [argparse.Namespace(identity=f"mug-{m}", meta={"has_handle": m != 0}) for m in range(3) for _ in range(6)]
+    assert _dense_mug_views(views, 1, 2) == [6, 8, 10]  # mug-0 has no handle: mug-1's views 0, 2, 4
+    assert _dense_mug_views(views, 5, 3) == [6, 9, 12, 15]
+    assert _dense_mug_views(views, 0, 2) == []
+    with pytest.raises(EvaluationCliError, match="dense-step"):
+        _dense_mug_views(views, 1, 0)

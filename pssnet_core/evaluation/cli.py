@@ -43,6 +43,10 @@ def _add_plausible_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sets", default=",".join(TEST_SETS), help=f"test sets (default {','.join(TEST_SETS)})")
     p.add_argument("--max-observations", type=int, default=None,
                    help="score only this many observations per set (evenly spaced); candidates are always all")
+    p.add_argument("--dense-mugs", type=int, default=0,
+                   help="with --max-observations: also score every --dense-step-th view of the first K mugs with a "
+                        "handle (a full turn for the coverage-vs-rotation plot)")
+    p.add_argument("--dense-step", type=int, default=2, help="view stride of --dense-mugs (2 = every 10 degrees)")
     p.add_argument("--workers", type=int, default=2, help="processes for the plausible sets")
     p.add_argument("--cache-dir", default=None, help="plausible-set cache (default DATA_SET/plausible_cache)")
     p.add_argument("--recompute", action="store_true", help="ignore cached plausible sets")
@@ -133,6 +137,24 @@ def _references(count: int, max_observations: int | None) -> list[int] | None:
     return sorted(set(np.linspace(0, count - 1, max_observations).round().astype(int).tolist()))
 
 
+def _dense_mug_views(views: list[Any], count: int, step: int) -> list[int]:
+    """Every ``step``-th view of the first ``count`` mugs that have a handle (views of a mug are consecutive)."""
+    if count < 0 or step < 1:
+        raise EvaluationCliError(f"--dense-mugs must be >= 0 and --dense-step >= 1, got {count} and {step}")
+    mugs: list[str] = []
+    for view in views:
+        if view.meta.get("has_handle") and view.identity not in mugs:
+            mugs.append(view.identity)
+    chosen = set(mugs[:count])
+    out, seen = [], {}
+    for k, view in enumerate(views):
+        if view.identity in chosen:
+            if seen.setdefault(view.identity, 0) % step == 0:
+                out.append(k)
+            seen[view.identity] += 1
+    return out
+
+
 def _plausible_for(args: argparse.Namespace,
                    deltas: tuple[float, ...]) -> dict[str, tuple[list, PlausibleSets, list[int]]]:
     """Loads each requested test set and its plausible sets (cached or computed)."""
@@ -151,6 +173,8 @@ def _plausible_for(args: argparse.Namespace,
         found_any = True
         views, _ = load_test_set(root, progress=progress)
         refs = _references(len(views), args.max_observations)
+        if name == "mugs" and refs is not None and getattr(args, "dense_mugs", 0):
+            refs = sorted(set(refs) | set(_dense_mug_views(views, args.dense_mugs, args.dense_step)))
         cache = Path(args.cache_dir) if args.cache_dir else root / "plausible_cache"
         t0 = time.perf_counter()
         sets, path, hit = cached_plausible_sets(views, ProceduralMeshes(), dataset_fingerprint(root), cache, config,
