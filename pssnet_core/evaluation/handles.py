@@ -159,7 +159,7 @@ def plot_handle_samples(path: str | Path, ground_truth: np.ndarray, samples: dic
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pssnet_core.evaluation.report import draw_voxels
+    from pssnet_core.evaluation.report import draw_voxels, save_figure
 
     cols = count + 1
     fig = plt.figure(figsize=(1.9 * cols, 2.0 * len(samples) + 0.4))
@@ -172,9 +172,4 @@ def plot_handle_samples(path: str | Path, ground_truth: np.ndarray, samples: dic
             ax = fig.add_subplot(len(samples), cols, r * cols + 2 + c, projection="3d")
             draw_voxels(ax, grids[c], f"{method} #{c}: {label}", "tab:blue")
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100)

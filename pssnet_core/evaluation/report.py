@@ -146,12 +146,7 @@ def plot_coverage_vs_rotation(path: str | Path, rows: Sequence[dict[str, Any]], 
                 ax.set_xlabel("rotation about the vertical (deg)")
             if row_k == 0 and col_k == 0:
                 ax.legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def _surface(grid: np.ndarray) -> np.ndarray:
@@ -163,6 +158,18 @@ def _surface(grid: np.ndarray) -> np.ndarray:
         for shift in (-1, 1):
             interior &= np.roll(padded, shift, axis=axis)[1:-1, 1:-1, 1:-1]
     return np.argwhere(grid & ~interior)
+
+
+def save_figure(fig: Any, path: str | Path, dpi: int = 100) -> Path:
+    """Lays out, writes (creating the folder) and closes a matplotlib figure; returns the path."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
 
 
 def draw_voxels(ax: Any, grid: np.ndarray, title: str, color: str) -> None:
@@ -211,9 +218,4 @@ def plot_samples_vs_plausible(path: str | Path, examples: Sequence[KeptExample],
             ax = fig.add_subplot(2 * len(chosen), cols, (2 * k + 1) * cols + 2 + c, projection="3d")
             draw_voxels(ax, ex.plausible[nearest],
                          f"nearest plausible #{nearest}\n{ex.distances[s, nearest] * 1000:.1f} mm", "tab:orange")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100)
