@@ -95,6 +95,7 @@ def test_handles_command_separates_agreeing_from_spread_out_samples(tmp_path):
     shapes = {v.identity: make_shape("mug", int(v.identity.split("-")[1])) for v in views}
 
     def turned(observation, turn):
+        observation = observation.network_input()  # what the real Completer reads of an observation
         view = next(v for v in views if np.array_equal(v.known_occupied, observation[0] > 0.5)
                     and np.array_equal(v.known_free, observation[1] > 0.5))
         if turn == 0:

@@ -316,6 +316,7 @@ def run_handles(args: argparse.Namespace, completers: dict[str, Any]) -> dict[st
     from pssnet_core.evaluation.handles import (
         HandleGeometry,
         HandleMeasureError,
+        handle_azimuths,
         handle_stats,
         plot_handle_samples,
         stats_row,
@@ -348,9 +349,8 @@ def run_handles(args: argparse.Namespace, completers: dict[str, Any]) -> dict[st
     chosen = [v for identity in geometries for v in by_mug[identity]]
     rows = []
     for view in tqdm(chosen, desc="handles", disable=args.no_progress):
-        x = np.stack([view.known_occupied, view.known_free]).astype(np.float32)
         for method, completer in completers.items():
-            samples = completer.complete(x, num_samples=args.samples, seed=args.seed).occupancy
+            samples = completer.complete(view, num_samples=args.samples, seed=args.seed).occupancy
             rows.append(stats_row(method, view, handle_stats(samples, view, geometries[view.identity])))
     methods = list(completers)
     summary = summarise_handles(rows, methods)
@@ -380,14 +380,14 @@ def run_handles(args: argparse.Namespace, completers: dict[str, Any]) -> dict[st
         if not candidates:
             continue
         view = _closest(candidates, rotation)
-        x = np.stack([view.known_occupied, view.known_free]).astype(np.float32)
         grids, azimuths = {}, {}
         for method, completer in completers.items():
-            grids[method] = completer.complete(x, num_samples=8, seed=args.seed).occupancy
-            azimuths[method] = handle_stats(grids[method], view, geometries[view.identity]).azimuths_deg
+            grids[method] = completer.complete(view, num_samples=8, seed=args.seed).occupancy
+            azimuths[method] = handle_azimuths(grids[method], view.grid_pose, view.object_pose,
+                                               geometries[view.identity])
         truth = reader.get(view.index, images=False)["occupancy"]
         files[f"figure_{label}"] = plot_handle_samples(
-            out / f"handle_samples_{label}.png", truth, grids, {m: np.array(a) for m, a in azimuths.items()},
+            out / f"handle_samples_{label}.png", truth, grids, azimuths,
             f"{view.identity}, rotation {view.meta.get('rotation_deg')} deg: handle {label} "
             f"(true handle azimuth 0 deg)")
     return files
