@@ -2,11 +2,17 @@
 
     .venv/bin/python benchmarks/inference_bench.py [--grids 32 64] [--samples 20] [--repeats 15]
         [--threads 2] [--device cpu|cuda] [--checkpoint32 PATH] [--checkpoint64 PATH]
+    .venv/bin/python benchmarks/inference_bench.py --layers [--grids 32 64] [--samples 20]
 
 Without a checkpoint the model is randomly initialised (same FLOPs, so the same latency); the numeric
 difference between fp32 and the fast path is only meaningful on trained weights, so pass checkpoints for it.
 Prints one row per grid: median ms fp32 eager, median ms fast path (channels_last_3d + bf16 autocast where
 native), speed-up, and max |p_fast - p_fp32| and the fraction of voxels whose occupancy (> 0.5) differs.
+
+``--layers`` instead times every kernel-2 stride-2 stage, channels_last_3d: encoder convolutions at batch 1,
+decoder transposed convolutions on the batch of latents, each as torch's layer (oneDNN) and as the
+BlockConv3d / BlockDeconv3d GEMM form the models use, with the GMAC/s each reaches: the measurement
+behind that choice.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import torch
 
 from pssnet_core.inference import Completer
 from pssnet_core.models import build_model, default_config
+from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d
 from pssnet_core.training import load_checkpoint
 
 
@@ -48,6 +55,46 @@ def _time(completer: Completer, x: np.ndarray, samples: int, repeats: int, devic
     return statistics.median(times), result.probabilities
 
 
+def _median_ms(fn, repeats: int) -> float:
+    for _ in range(3):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1000)
+    return statistics.median(times)
+
+
+def layer_stages(grid: int, samples: int, repeats: int) -> None:
+    """Every encoder stage (batch 1) and decoder stage (batch ``samples``): torch's layer vs the Block one."""
+    config = default_config("pssnet", grid_size=grid)
+    enc = list(zip([2, *config.channels[:-1]], config.channels, strict=True))
+    widths = list(reversed(config.channels))
+    dec = list(zip(widths, [*widths[1:], 1], strict=True))
+    print(f"grid {grid}: stage     in->out  input   batch   torch ms (GMAC/s)   Block ms (GMAC/s)   max|diff|")
+    torch.manual_seed(0)
+    stages = [("encoder", i, c_in, c_out, grid // 2**i, 1, BlockConv3d, torch.nn.Conv3d)
+              for i, (c_in, c_out) in enumerate(enc)]
+    side = grid // 2 ** len(config.channels)
+    stages += [("decoder", i, c_in, c_out, side * 2**i, samples, BlockDeconv3d, torch.nn.ConvTranspose3d)
+               for i, (c_in, c_out) in enumerate(dec)]
+    with torch.inference_mode():
+        for part, i, c_in, c_out, size, batch, block_cls, torch_cls in stages:
+            block = block_cls(c_in, c_out).to(memory_format=torch.channels_last_3d)
+            reference = torch_cls(c_in, c_out, 2, 2).to(memory_format=torch.channels_last_3d)
+            reference.load_state_dict(block.state_dict())
+            x = torch.randn(batch, c_in, size, size, size).contiguous(memory_format=torch.channels_last_3d)
+            out_voxels = batch * (size // 2 if part == "encoder" else size) ** 3
+            gmac = out_voxels * c_in * c_out * 8 / 1e9
+            t_torch = _median_ms(lambda: reference(x), repeats)  # noqa: B023 (called inside the loop)
+            t_block = _median_ms(lambda: block(x), repeats)  # noqa: B023
+            diff = (reference(x) - block(x)).abs().max().item()
+            print(f"  {part} {i} {c_in:>5}->{c_out:<4} {size:>3}^3 {batch:>6} "
+                  f"{t_torch:>10.2f} ({gmac / t_torch * 1e3:5.1f}) {t_block:>10.2f} ({gmac / t_block * 1e3:5.1f}) "
+                  f"{diff:>10.1e}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--grids", type=int, nargs="+", default=[32, 64])
@@ -58,8 +105,15 @@ def main() -> None:
     parser.add_argument("--model", default="pssnet")
     parser.add_argument("--checkpoint32", default=None)
     parser.add_argument("--checkpoint64", default=None)
+    parser.add_argument("--layers", action="store_true",
+                        help="time each kernel-2 stride-2 stage, torch layer vs Block layer")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.layers:
+        print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, median of {args.repeats}")
+        for grid in args.grids:
+            layer_stages(grid, args.samples, args.repeats)
+        return
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}, "
           f"{args.samples} samples, median of {args.repeats}")
     print(f"{'grid':>5} {'weights':>9} {'fp32 ms':>9} {'fast ms':>9} {'fast':>9} {'speed-up':>9} "

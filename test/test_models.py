@@ -22,6 +22,7 @@ from pssnet_core.models import (
 )
 from pssnet_core.models.base import bce_sum
 from pssnet_core.models.flow import RealNVP
+from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d
 
 GRID = 16
 CPU = StepContext(torch.device("cpu"))
@@ -231,6 +232,40 @@ def test_recgan_sampling_is_deterministic_repetition():
     with torch.inference_mode():
         out = model.sample(batch(1)["input"], 4, generator=torch.Generator().manual_seed(0))
     assert all(torch.equal(out[0], out[i]) for i in range(4))
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize(("block_cls", "torch_cls", "c_in", "c_out", "size"), [
+    (BlockConv3d, torch.nn.Conv3d, 3, 5, 8),
+    (BlockDeconv3d, torch.nn.ConvTranspose3d, 5, 3, 4),
+    (BlockDeconv3d, torch.nn.ConvTranspose3d, 6, 1, 2),
+])
+def test_block_layers_equal_torch_layers_with_gradients(block_cls, torch_cls, c_in, c_out, size, channels_last):
+    torch.manual_seed(0)
+    block = block_cls(c_in, c_out)
+    reference = torch_cls(c_in, c_out, kernel_size=2, stride=2)
+    reference.load_state_dict(block.state_dict())  # same parameters and keys
+    x = torch.randn(2, c_in, size, size + 2, size + 4)  # anisotropic: catches a swapped axis
+    if channels_last:
+        block, reference = (m.to(memory_format=torch.channels_last_3d) for m in (block, reference))
+        x = x.contiguous(memory_format=torch.channels_last_3d)
+    x_block, x_ref = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    y_block, y_ref = block(x_block), reference(x_ref)
+    assert y_block.shape == y_ref.shape
+    torch.testing.assert_close(y_block, y_ref, rtol=1e-5, atol=1e-5)
+    weights = torch.randn_like(y_ref)
+    (y_block * weights).sum().backward()
+    (y_ref * weights).sum().backward()
+    torch.testing.assert_close(x_block.grad, x_ref.grad, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(block.weight.grad, reference.weight.grad, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(block.bias.grad, reference.bias.grad, rtol=1e-4, atol=1e-4)
+
+
+def test_block_layers_reject_wrong_input():
+    with pytest.raises(ValueError, match="expected"):
+        BlockDeconv3d(4, 2)(torch.zeros(1, 3, 2, 2, 2))
+    with pytest.raises(ValueError, match="even"):
+        BlockConv3d(1, 2)(torch.zeros(1, 1, 3, 4, 4))
 
 
 def test_weighted_bce_matches_formula():

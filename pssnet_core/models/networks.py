@@ -20,6 +20,64 @@ def to_memory_format(x: torch.Tensor, reference: nn.Module) -> torch.Tensor:
     return x
 
 
+class BlockConv3d(nn.Conv3d):
+    """Conv3d(kernel 2, stride 2, no padding) computed as one matrix product over 2x2x2 blocks.
+
+    With kernel == stride the blocks do not overlap, so the layer is ``blocks(x) @ W``: each output voxel
+    is its input block's 8 * C_in values times a (8 * C_in, C_out) matrix. Same parameters and state_dict
+    keys as nn.Conv3d, so checkpoints are interchangeable.
+
+    Why by hand: on this AVX2 CPU oneDNN runs the encoder's batch-1 convolutions at 2-5 GMAC/s, a third of
+    the same work as one GEMM (``python benchmarks/inference_bench.py --layers``); torch has no such layer.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__(in_channels, out_channels, kernel_size=2, stride=2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        b, c_in, d, h, w = _check_5d(x, self.in_channels)
+        if d % 2 or h % 2 or w % 2:
+            raise ValueError(f"BlockConv3d needs even spatial sizes, got {tuple(x.shape[2:])}")
+        blocks = (x.permute(0, 2, 3, 4, 1).reshape(b, d // 2, 2, h // 2, 2, w // 2, 2, c_in)
+                  .permute(0, 1, 3, 5, 2, 4, 6, 7).reshape(-1, 8 * c_in))  # rows: [kd, kh, kw, C_in]
+        weight = self.weight.permute(2, 3, 4, 1, 0).reshape(8 * c_in, self.out_channels)
+        y = torch.addmm(self.bias, blocks, weight) if self.bias is not None else blocks @ weight
+        return y.view(b, d // 2, h // 2, w // 2, self.out_channels).permute(0, 4, 1, 2, 3)  # channels_last_3d
+
+
+class BlockDeconv3d(nn.ConvTranspose3d):
+    """ConvTranspose3d(kernel 2, stride 2, no padding) computed as one matrix product and a voxel shuffle.
+
+    With kernel == stride every input voxel writes its own 2x2x2 output block, so the layer is exactly
+    ``rows(x) @ W`` with W of shape (C_in, 8 * C_out), followed by a reshuffle of the 8 columns into the
+    block. Same parameters and state_dict keys as nn.ConvTranspose3d, so checkpoints are interchangeable.
+
+    Why by hand: oneDNN's deconvolution on this AVX2 CPU runs the decoder's last stage (64 -> 1 channels,
+    16^3 -> 32^3, batch 20) at under 1 GMAC/s, 5-10x below the same work as one GEMM
+    (``python benchmarks/inference_bench.py --layers``); torch has no such layer.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__(in_channels, out_channels, kernel_size=2, stride=2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        b, c_in, d, h, w = _check_5d(x, self.in_channels)
+        c_out = self.out_channels
+        # (C_in, C_out, 2, 2, 2) -> (C_in, [kd, kh, kw, C_out]): a free view for channels_last_3d weights.
+        weight = self.weight.permute(0, 2, 3, 4, 1).reshape(c_in, 8 * c_out)
+        rows = x.permute(0, 2, 3, 4, 1).reshape(-1, c_in)  # free for channels_last_3d input
+        y = torch.addmm(self.bias.repeat(8), rows, weight) if self.bias is not None else rows @ weight
+        y = (y.view(b, d, h, w, 2, 2, 2, c_out).permute(0, 1, 4, 2, 5, 3, 6, 7)
+             .reshape(b, 2 * d, 2 * h, 2 * w, c_out))
+        return y.permute(0, 4, 1, 2, 3)  # NCDHW shape, channels_last_3d memory
+
+
+def _check_5d(x: torch.Tensor, channels: int) -> tuple[int, int, int, int, int]:
+    if x.ndim != 5 or x.shape[1] != channels:
+        raise ValueError(f"expected (B, {channels}, D, H, W), got {tuple(x.shape)}")
+    return tuple(x.shape)  # type: ignore[return-value]
+
+
 class Encoder3D(nn.Module):
     """The paper's encoder: stages of Conv3d(kernel 2, stride 2) + ReLU, then one dense layer.
 
@@ -35,7 +93,7 @@ class Encoder3D(nn.Module):
         layers: list[nn.Module] = []
         width = in_channels
         for ch in channels:
-            layers += [nn.Conv3d(width, ch, kernel_size=2, stride=2), nn.ReLU(inplace=True)]
+            layers += [BlockConv3d(width, ch), nn.ReLU(inplace=True)]
             width = ch
         self.conv = nn.Sequential(*layers)
         side = grid_size // 2 ** len(channels)
@@ -58,7 +116,7 @@ class Decoder3D(nn.Module):
         outs = [*ins[1:], 1]
         layers: list[nn.Module] = []
         for i, (a, b) in enumerate(zip(ins, outs, strict=False)):
-            layers.append(nn.ConvTranspose3d(a, b, kernel_size=2, stride=2))
+            layers.append(BlockDeconv3d(a, b))
             if i < len(outs) - 1:  # the last stage emits logits
                 layers.append(nn.ReLU(inplace=True))
         self.deconv = nn.Sequential(*layers)
