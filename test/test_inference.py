@@ -5,27 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_models_helpers import TINY_BY_MODEL, cuboid_sample
+from test_models_helpers import cuboid_sample, tiny_model
 
 import pssnet_core.inference as inference
 from pssnet_core.inference import CheckpointError, Completer, CompletionInputError, CompletionResult
-from pssnet_core.models import build_model, default_config
 from pssnet_core.training import save_checkpoint
 
 GRID = 16
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def checkpoint(tmp_path, name="pssnet"):
-    torch.manual_seed(0)
-    model = build_model(default_config(name, grid_size=GRID, **TINY_BY_MODEL[name]))
+    model = tiny_model(name, GRID)
     if hasattr(model, "encoder"):
         with torch.no_grad():  # spread the posterior so that samples visibly differ
             model.encoder.dense.bias[model.latent_dim:] = 1.0

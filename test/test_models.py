@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_models_helpers import TINY_BY_MODEL, cuboid_sample
+from test_models_helpers import cuboid_sample, tiny_model
 
 from pssnet_core.models import (
     ConfigError,
@@ -28,17 +28,7 @@ GRID = 16
 CPU = StepContext(torch.device("cpu"))
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def tiny(name: str, **kw):
-    torch.manual_seed(0)
-    return build_model(default_config(name, grid_size=GRID, **{**TINY_BY_MODEL[name], **kw}))
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def batch(num: int = 4, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -87,7 +77,7 @@ def test_bad_configs_are_rejected():
 
 @pytest.mark.parametrize("name", ["pssnet", "vae", "vae_gan", "recgan"])
 def test_shapes_and_dtypes(name):
-    model = tiny(name).eval()
+    model = tiny_model(name).eval()
     x = batch(2)["input"]
     with torch.inference_mode():
         probs = model.sample(x[:1], 5, generator=torch.Generator().manual_seed(0))
@@ -110,7 +100,7 @@ def test_full_size_models_build_at_32_and_64():
 
 
 def test_bad_input_shape_raises():
-    model = tiny("vae")
+    model = tiny_model("vae")
     with pytest.raises(ModelInputError, match=r"\(B, 2, 16, 16, 16\)"):
         model.sample(torch.zeros(1, 1, GRID, GRID, GRID), 2)
     with pytest.raises(ModelInputError, match="num_samples"):
@@ -158,7 +148,7 @@ def _capture_decoder_input(model):
 
 
 def test_training_feeds_flow_of_box_to_the_decoder():
-    model = tiny("pssnet").train()
+    model = tiny_model("pssnet").train()
     opts = model.make_optimizers(1e-3)
     b = batch(4)
     seen, handle = _capture_decoder_input(model)
@@ -180,7 +170,7 @@ def test_training_feeds_flow_of_box_to_the_decoder():
 
 
 def test_sampling_uses_the_posterior_not_the_flow():
-    model = tiny("pssnet").eval()
+    model = tiny_model("pssnet").eval()
     b = batch(1)
     called = []
     handle_flow = model.flow.register_forward_hook(lambda *a: called.append(1))
@@ -197,7 +187,7 @@ def test_sampling_uses_the_posterior_not_the_flow():
 
 @pytest.mark.parametrize("name", ["pssnet", "vae", "vae_gan", "recgan"])
 def test_losses_finite_and_decreasing_on_tiny_overfit(name):
-    model = tiny(name).train()
+    model = tiny_model(name).train()
     opts = model.make_optimizers(3e-3)
     b = batch(8)
     if name == "pssnet":
@@ -214,7 +204,7 @@ def test_losses_finite_and_decreasing_on_tiny_overfit(name):
 
 
 def test_flow_pretraining_lowers_box_nll():
-    model = tiny("pssnet", flow_pretrain_steps=60, flow_pretrain_batch=16, flow_pretrain_lr=1e-3)
+    model = tiny_model("pssnet", flow_pretrain_steps=60, flow_pretrain_batch=16, flow_pretrain_lr=1e-3)
     rng = np.random.default_rng(0)
     boxes = torch.from_numpy(np.stack([cuboid_sample(rng, GRID)["box"] for _ in range(64)]))
     with torch.no_grad():
@@ -228,7 +218,7 @@ def test_flow_pretraining_lowers_box_nll():
 
 
 def test_recgan_sampling_is_deterministic_repetition():
-    model = tiny("recgan").eval()
+    model = tiny_model("recgan").eval()
     with torch.inference_mode():
         out = model.sample(batch(1)["input"], 4, generator=torch.Generator().manual_seed(0))
     assert all(torch.equal(out[0], out[i]) for i in range(4))
@@ -279,7 +269,7 @@ def test_weighted_bce_matches_formula():
 
 
 def test_channels_last_bf16_matches_fp32_closely():
-    model = tiny("vae").eval()
+    model = tiny_model("vae").eval()
     x = batch(1)["input"]
     g = lambda: torch.Generator().manual_seed(0)  # noqa: E731
     with torch.inference_mode():

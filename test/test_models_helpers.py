@@ -8,8 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from pssnet_core.data.store import DatasetWriter
+from pssnet_core.models import CompletionModel, build_model, default_config
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32}
 TINY_PSSNET = {**TINY, "flow_hidden": 32, "flow_couplings": 4, "flow_pretrain_steps": 5,
@@ -17,6 +19,12 @@ TINY_PSSNET = {**TINY, "flow_hidden": 32, "flow_couplings": 4, "flow_pretrain_st
 TINY_GAN = {"channels": [4, 8, 8, 16], "latent_dim": 32, "disc_channels": [4, 8]}
 TINY_RECGAN = {"channels": [4, 8, 8, 16], "bottleneck_dim": 16, "disc_channels": [4, 8]}
 TINY_BY_MODEL = {"pssnet": TINY_PSSNET, "vae": TINY, "vae_gan": TINY_GAN, "recgan": TINY_RECGAN}
+
+
+def tiny_model(name: str = "pssnet", grid: int = 16, **overrides) -> CompletionModel:
+    """A seeded tiny model of the registry name ``name`` (``overrides`` change its config)."""
+    torch.manual_seed(0)
+    return build_model(default_config(name, grid_size=grid, **{**TINY_BY_MODEL[name], **overrides}))
 
 
 def cuboid_sample(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:

@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from test_models_helpers import TINY_BY_MODEL, make_dataset
+from test_models_helpers import TINY_BY_MODEL, make_dataset, tiny_model
 
-from pssnet_core.models import build_model, default_config
 from pssnet_core.training import (
     CheckpointError,
     TrainConfig,
@@ -31,22 +30,12 @@ from pssnet_core.training.trainer import resolve_context
 GRID = 16
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     return make_dataset(tmp_path_factory.mktemp("data") / "train", num=24, grid=GRID)
-
-
-def tiny_model(name="pssnet"):
-    torch.manual_seed(0)
-    return build_model(default_config(name, grid_size=GRID, **TINY_BY_MODEL[name]))
 
 
 def sample(model, seed=0):
