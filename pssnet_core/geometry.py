@@ -15,6 +15,7 @@ projected on the horizontal plane), y = z x x. Grid coordinates are continuous v
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -252,6 +253,61 @@ class GridPose:
         return cls(rotation=np.asarray(data["rotation"], dtype=np.float64).reshape(3, 3),
                    origin=np.asarray(data["origin"], dtype=np.float64).reshape(3),
                    voxel_size=float(data["voxel_size"]), size=int(data["size"]))
+
+
+# Surface samples per voxel edge for :func:`surface_samples`: 25 samples per voxel-sized patch of surface,
+# so a voxel the surface crosses with a fifth of a voxel face of area or more holds one with P > 99 %.
+SURFACE_SAMPLES_PER_VOXEL_EDGE: int = 5
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, voxel_size: float, seed: int = 0) -> np.ndarray:
+    """Seeded uniform samples of a mesh surface, dense for voxels of ``voxel_size`` ((M, 3) float64, mesh frame)."""
+    import trimesh  # local: only ground-truth voxelisation needs it
+
+    mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces), process=False)
+    spacing = voxel_size / SURFACE_SAMPLES_PER_VOXEL_EDGE
+    count = max(1, int(np.ceil(mesh.area / spacing**2)))
+    points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    return np.asarray(points, dtype=np.float64)
+
+
+def solid_occupancy(pose: GridPose, camera_from_object: np.ndarray, surface: np.ndarray,
+                    inside: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """The project's one ground-truth occupancy of an object in a grid.
+
+    A voxel is occupied when its centre lies inside the solid *or* the object's surface passes through it
+    (binvox-style: a surface plus its filled interior). Centres alone are not enough: a mug wall or handle
+    thinner than a voxel falls between centres, leaving a ground truth with holes that misses about half of
+    the voxels the camera sees (measured on the 32^3 mug test set); with the surface voxels every observed
+    point lies in a ground-truth voxel.
+
+    Args:
+        pose: the grid.
+        camera_from_object: (4, 4) camera <- object.
+        surface: dense object-frame surface samples (:func:`surface_samples` at ``pose.voxel_size``).
+        inside: object-frame points (M, 3) -> bool (M,), inside the watertight solid.
+
+    Returns:
+        (N, N, N) bool.
+    """
+    n = pose.size
+    rotation, translation = camera_from_object[:3, :3], camera_from_object[:3, 3]
+    grid = pose.camera_to_grid(np.asarray(surface, dtype=np.float64) @ rotation.T + translation)
+    occupancy = np.zeros((n, n, n), dtype=bool)
+    if len(grid) == 0:
+        return occupancy
+    # Only voxels within the surface's bounds can have an inside centre: query that block alone.
+    lo = np.clip(np.floor(grid.min(axis=0)).astype(int), 0, n)
+    hi = np.clip(np.floor(grid.max(axis=0)).astype(int) + 1, 0, n)
+    if np.all(hi > lo):
+        axes = [np.arange(lo[c], hi[c]) + 0.5 for c in range(3)]
+        centres = pose.grid_to_camera(np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3))
+        occupancy[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = inside((centres - translation) @ rotation).reshape(
+            tuple(hi - lo))
+    ijk = np.floor(grid).astype(np.int64)
+    ijk = ijk[np.all((ijk >= 0) & (ijk < n), axis=1)]
+    occupancy[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    return occupancy
 
 
 def place_grid(points: np.ndarray, up: np.ndarray, config: GridConfig) -> GridPose:

@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy import ndimage
 
 from pssnet_core.data import cli as data_cli
 from pssnet_core.data.build import build_dataset, dataset_path
@@ -113,8 +114,10 @@ def test_box_corners_contain_the_ground_truth(built):
         origin = corners[0]
         edges = np.stack([corners[1] - origin, corners[2] - origin, corners[4] - origin])
         centres = np.argwhere(sample["occupancy"]) + 0.5
-        local = (centres - origin) @ np.linalg.inv(edges)  # box coordinates in [0, 1]^3
-        assert local.min() >= -1e-6 and local.max() <= 1 + 1e-6, sample["identity"]
+        local = (centres - origin) @ np.linalg.inv(edges)  # box coordinates, [0, 1]^3 inside the box
+        # Surface voxels' centres may lie outside the box, but at most half a voxel diagonal.
+        outside = (np.clip(-local, 0, None) + np.clip(local - 1, 0, None)) * np.linalg.norm(edges, axis=1)
+        assert np.linalg.norm(outside, axis=1).max() <= 0.5 * np.sqrt(3) + 1e-6, sample["identity"]
         # The corners are exactly the posed bounding box, and opposite edges are parallel (a box, not a blob).
         np.testing.assert_allclose(corners[7] - corners[6], corners[1] - corners[0], atol=1e-4)
 
@@ -163,15 +166,31 @@ def test_slit_columns_are_neither_occupied_nor_free(built):
     assert checked >= 12
 
 
-def test_ground_truth_block_query_equals_querying_every_voxel():
+def test_ground_truth_is_the_filled_surface_and_holds_every_observed_point():
     shape = make_shape("mug", 5)
     view = render_view(shape, yaw_deg=40.0, distance=0.6, tilt_deg=25.0)
     obs = view.observe(GridConfig.for_size(GRID))
     occupancy = ground_truth_occupancy(shape, view.object_pose, obs.pose, view.camera_pose)
+    # Every voxel whose centre is inside the solid (queried over the whole grid, not just the object's block).
     world = obs.pose.all_centres() @ view.camera_pose[:3, :3].T + view.camera_pose[:3, 3]
     local = (world - view.object_pose[:3, 3]) @ view.object_pose[:3, :3]
-    full = ObjectScene(shape).occupancy(local).reshape(occupancy.shape)
-    assert occupancy.sum() > 100 and np.array_equal(occupancy, full)
+    centre_inside = ObjectScene(shape).occupancy(local).reshape(occupancy.shape)
+    assert centre_inside.sum() > 100 and not (centre_inside & ~occupancy).any()
+    # Observed voxels are ground-truth voxels (thin walls: centres alone miss about half of them). Depth is
+    # rounded to millimetres, so a point within 0.5 mm of a voxel face may land in the neighbour: allow a
+    # few of those, all face-adjacent to the ground truth.
+    observed = obs.known_occupied
+    assert observed.sum() > 100
+    assert (observed & ~occupancy).sum() <= 0.03 * observed.sum()
+    assert (observed & ~centre_inside).sum() > 0.3 * observed.sum()
+    assert not (observed & ~ndimage.binary_dilation(occupancy)).any()
+    # The added voxels are surface voxels: their centre lies within half a voxel diagonal of the surface.
+    mesh_scene = o3d.t.geometry.RaycastingScene()
+    mesh_scene.add_triangles(o3d.core.Tensor(np.asarray(shape.mesh.vertices, dtype=np.float32)),
+                             o3d.core.Tensor(np.asarray(shape.mesh.faces, dtype=np.uint32)))
+    added = local.reshape(*occupancy.shape, 3)[occupancy & ~centre_inside].astype(np.float32)
+    distance = mesh_scene.compute_distance(o3d.core.Tensor(added)).numpy()
+    assert len(added) > 50 and distance.max() <= 0.5 * np.sqrt(3) * obs.pose.voxel_size + 1e-6
 
 
 def mug_with_handle() -> int:

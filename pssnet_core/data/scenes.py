@@ -14,8 +14,9 @@ observation bit for bit); 0 means "no reading". The mask marks pixels whose near
 A vertical slit (:class:`Slit`) blanks every column outside it: depth 0 and mask 0, i.e. unknown.
 Optional sensor imperfections (:class:`SensorNoise`) are off unless asked for.
 
-Ground truth (:func:`ground_truth_occupancy`) is the one solid-occupancy definition of the project: a voxel
-is occupied iff its centre lies inside the watertight object mesh (open3d ``compute_occupancy``).
+Ground truth (:func:`ground_truth_occupancy`) follows the project's one occupancy definition
+(:func:`pssnet_core.geometry.solid_occupancy`): a voxel is occupied when its centre lies inside the watertight
+object mesh (open3d ``compute_occupancy``) or the mesh surface passes through it.
 """
 
 from __future__ import annotations
@@ -26,7 +27,15 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from pssnet_core.geometry import CameraIntrinsics, GridConfig, GridPose, Observation, observe
+from pssnet_core.geometry import (
+    CameraIntrinsics,
+    GridConfig,
+    GridPose,
+    Observation,
+    observe,
+    solid_occupancy,
+    surface_samples,
+)
 from pssnet_core.shapes import Shape
 
 
@@ -272,6 +281,13 @@ class ObjectScene:
             self._handle_scene = o3d.t.geometry.RaycastingScene()
             self._handle_scene.add_triangles(_o3d_mesh(shape.handle))
         self.vertices = np.asarray(shape.mesh.vertices, dtype=np.float64)
+        self._surface: dict[float, np.ndarray] = {}  # surface samples by voxel size
+
+    def surface(self, voxel_size: float) -> np.ndarray:
+        """Object-frame surface samples dense enough for ``voxel_size`` (cached: one set per grid resolution)."""
+        if voxel_size not in self._surface:
+            self._surface[voxel_size] = surface_samples(self.vertices, np.asarray(self.shape.mesh.faces), voxel_size)
+        return self._surface[voxel_size]
 
     def _cast(self, scene: o3d.t.geometry.RaycastingScene, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         rays = np.empty((*dirs.shape[:-1], 6), dtype=np.float32)
@@ -376,21 +392,9 @@ class ObjectScene:
         return u0, u1
 
     def ground_truth(self, object_pose: np.ndarray, grid_pose: GridPose, camera_pose: np.ndarray) -> np.ndarray:
-        """(N, N, N) bool solid occupancy at the voxel centres; see :func:`ground_truth_occupancy`."""
-        n = grid_pose.size
-        grid_to_object = np.linalg.inv(object_pose) @ camera_pose @ grid_pose.to_matrix()
-        # Only voxels within the object's bounding box can be occupied: query that block alone.
-        corners_grid = self._object_to_grid(self.shape.box_corners(), grid_to_object, grid_pose.voxel_size)
-        lo = np.clip(np.floor(corners_grid.min(axis=0) - 0.5).astype(int), 0, n)
-        hi = np.clip(np.ceil(corners_grid.max(axis=0) + 0.5).astype(int), 0, n)
-        occupancy = np.zeros((n, n, n), dtype=bool)
-        if np.any(hi <= lo):
-            return occupancy
-        axes = [(np.arange(lo[c], hi[c]) + 0.5) * grid_pose.voxel_size for c in range(3)]
-        centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        inside = self.occupancy(centres @ grid_to_object[:3, :3].T + grid_to_object[:3, 3])
-        occupancy[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = inside.reshape(tuple(hi - lo))
-        return occupancy
+        """(N, N, N) bool ground-truth occupancy; see :func:`ground_truth_occupancy`."""
+        camera_from_object = np.linalg.inv(camera_pose) @ object_pose
+        return solid_occupancy(grid_pose, camera_from_object, self.surface(grid_pose.voxel_size), self.occupancy)
 
     @staticmethod
     def _object_to_grid(points: np.ndarray, grid_to_object: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -407,8 +411,9 @@ def ground_truth_occupancy(shape: Shape, object_pose: np.ndarray, grid_pose: Gri
                            scene: ObjectScene | None = None) -> np.ndarray:
     """The ground-truth solid occupancy of an object in an observation grid.
 
-    The project's one definition: voxel (i, j, k) is occupied iff its centre lies inside the watertight
-    object mesh (open3d ``RaycastingScene.compute_occupancy``, ray-parity test).
+    The project's one definition (:func:`pssnet_core.geometry.solid_occupancy`): voxel (i, j, k) is occupied
+    when its centre lies inside the watertight object mesh (open3d ``RaycastingScene.compute_occupancy``,
+    ray-parity test) or the mesh surface passes through it.
 
     Args:
         shape: the object.

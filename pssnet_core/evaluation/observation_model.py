@@ -45,7 +45,7 @@ from functools import cached_property
 import numpy as np
 from scipy import ndimage
 
-from pssnet_core.geometry import CameraIntrinsics
+from pssnet_core.geometry import CameraIntrinsics, GridPose, solid_occupancy, surface_samples
 
 
 class ObservationModelError(ValueError):
@@ -259,6 +259,7 @@ class MeshRaycaster:
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3 or len(self.faces) == 0:
             raise ObservationModelError("a candidate mesh needs (V, 3) vertices and at least one face")
         self._o3d = o3d
+        self._surface: dict[float, np.ndarray] = {}
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.faces))
 
@@ -327,13 +328,21 @@ class MeshRaycaster:
         rays[:, 3:] = d_cam @ rotation  # rows are R^T d
         return self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
 
-    def occupancy(self, camera_from_object: np.ndarray, points_camera: np.ndarray) -> np.ndarray:
-        """Which camera-frame points lie inside the mesh (the one solid-occupancy definition: centre inside)."""
-        o3d = self._o3d
-        rotation = camera_from_object[:3, :3]
-        local = (np.asarray(points_camera, dtype=np.float64) - camera_from_object[:3, 3]) @ rotation
-        occ = self.scene.compute_occupancy(o3d.core.Tensor(local.astype(np.float32)))
-        return occ.numpy().astype(bool)
+    def inside(self, points_object: np.ndarray) -> np.ndarray:
+        """Which object-frame points (M, 3) lie inside the watertight mesh."""
+        query = self._o3d.core.Tensor(np.ascontiguousarray(points_object, dtype=np.float32))
+        return self.scene.compute_occupancy(query).numpy().astype(bool)
+
+    def surface(self, voxel_size: float) -> np.ndarray:
+        """Object-frame surface samples dense enough for ``voxel_size`` (cached per voxel size)."""
+        if voxel_size not in self._surface:
+            self._surface[voxel_size] = surface_samples(self.vertices, self.faces, voxel_size)
+        return self._surface[voxel_size]
+
+    def occupancy_grid(self, pose: GridPose, camera_from_object: np.ndarray) -> np.ndarray:
+        """The mesh at ``camera_from_object`` voxelised in ``pose``'s grid (the project's one definition,
+        :func:`pssnet_core.geometry.solid_occupancy`)."""
+        return solid_occupancy(pose, camera_from_object, self.surface(pose.voxel_size), self.inside)
 
 
 def render_window(prepared: PreparedView, raycaster: MeshRaycaster,

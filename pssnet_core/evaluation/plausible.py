@@ -538,7 +538,7 @@ def plausible_shape_occupancy(views: Sequence[EvalView], meshes: MeshSource | Ca
                               raycasters: dict[str, MeshRaycaster] | None = None) -> np.ndarray:
     """Occupancy grids of plausible shapes in reference ``i``'s observation grid.
 
-    One definition of solid occupancy everywhere: a voxel is occupied when its centre lies inside the mesh.
+    One definition of occupancy everywhere: :func:`pssnet_core.geometry.solid_occupancy`.
 
     Args:
         views: the test set.
@@ -559,19 +559,8 @@ def plausible_shape_occupancy(views: Sequence[EvalView], meshes: MeshSource | Ca
         if identity not in raycasters:
             vertices, faces = meshes(identity)
             raycasters[identity] = MeshRaycaster(vertices, faces)
-        caster = raycasters[identity]
         placed = np.asarray(transform) @ views[j].object_pose
-        # Only voxels inside the placed mesh's bounding box can be occupied: query that block alone.
-        corners = caster.vertices.astype(np.float64) @ placed[:3, :3].T + placed[:3, 3]
-        g = pose.camera_to_grid(corners)
-        lo = np.clip(np.floor(g.min(axis=0)).astype(int), 0, n)
-        hi = np.clip(np.ceil(g.max(axis=0)).astype(int) + 1, 0, n)
-        if np.any(hi <= lo):
-            continue
-        axes = [np.arange(lo[c], hi[c]) + 0.5 for c in range(3)]
-        block = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        inside = caster.occupancy(placed, pose.grid_to_camera(block))
-        out[k, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = inside.reshape(tuple(hi - lo))
+        out[k] = raycasters[identity].occupancy_grid(pose, placed)
     return out
 
 
