@@ -154,6 +154,38 @@ def test_cli_train_one_epoch_then_resume(tmp_path, dataset):
     assert extra["train_state"]["epoch"] == 2 and extra["train_state"]["step"] == 6
 
 
+def test_init_from_starts_a_new_run_from_another_runs_weights(tmp_path, dataset):
+    cfg = _write_tiny_config(tmp_path / "tiny.yaml", "pssnet")
+    common = ["--data", str(dataset), "--batch-size", "8", "--threads", "1", "--val-slice", "0", "--no-progress"]
+    assert run_cli("train", "--model", "pssnet", "--out", str(tmp_path / "a"), "--model-config", cfg,
+                   "--epochs", "1", *common) == 0
+    source, _, source_extra = load_checkpoint(tmp_path / "a" / "last.pt")
+    # Stop right after the first step: the weights must be the source's moved by exactly one update.
+    summary = Trainer(TrainConfig(model="pssnet", data=str(dataset), out=str(tmp_path / "b"), epochs=1,
+                                  batch_size=8, max_minutes=1e-6, val_slice=0, progress=False,
+                                  log_every=1, init_from=str(tmp_path / "a" / "last.pt"))).fit()
+    assert summary["steps"] == 1 and summary["init_from"] == str(tmp_path / "a" / "last.pt")
+    assert summary["pretrain"] is None  # the flow comes trained from the source
+    warm, config, extra = load_checkpoint(tmp_path / "b" / "last.pt")
+    assert config.channels == [4, 8, 8, 16]  # the source's config, no --model-config needed
+    assert extra["train_state"]["step"] == 1 and extra["train_state"]["epoch"] == 0
+    assert extra["optimizers"]["main"]["state"][0]["step"] == source_extra["optimizers"]["main"]["state"][0]["step"] + 1
+    moved = [float((a - b).abs().max()) for a, b in zip(warm.state_dict().values(), source.state_dict().values(),
+                                                         strict=True) if a.is_floating_point()]
+    assert 0 < max(moved) < 0.05  # one Adam step at lr 1e-3 away from the source, not a fresh init
+    rows = list(csv.DictReader(open(tmp_path / "b" / "train_log.csv")))
+    assert [int(r["step"]) for r in rows] == [1]
+
+    with pytest.raises(TrainingError, match="cannot be combined"):
+        TrainConfig(model="pssnet", data=str(dataset), out=str(tmp_path / "c"), resume=True,
+                    init_from=str(tmp_path / "a" / "last.pt"))
+    assert run_cli("train", "--model", "vae", "--out", str(tmp_path / "d"), "--init-from",
+                   str(tmp_path / "a" / "last.pt"), *common) == 2
+    assert run_cli("export-model", str(tmp_path / "a" / "last.pt"), str(tmp_path / "ship.pt")) == 0
+    assert run_cli("train", "--model", "pssnet", "--out", str(tmp_path / "e"), "--init-from",
+                   str(tmp_path / "ship.pt"), *common) == 2
+
+
 @pytest.mark.parametrize("name", ["vae", "vae_gan", "recgan"])
 def test_trainer_runs_every_model(tmp_path, dataset, name):
     summary = Trainer(TrainConfig(model=name, data=str(dataset), out=str(tmp_path / name), epochs=1,

@@ -1,8 +1,8 @@
 """Runs completers on test observations and scores them against the plausible sets.
 
 For each reference observation: the plausible shapes of every delta are rebuilt once as occupancy grids of the
-observation's grid (voxel centre inside the mesh), then each completer draws ``samples`` completions and the
-metrics of :mod:`pssnet_core.evaluation.metrics` are computed per delta. The result is one row per
+observation's grid (:func:`pssnet_core.geometry.solid_occupancy`), then each completer draws ``samples``
+completions and the metrics of :mod:`pssnet_core.evaluation.metrics` are computed per delta. The result is one row per
 (test set, observation, method, delta), which :mod:`pssnet_core.evaluation.report` turns into tables and plots.
 """
 

@@ -33,6 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--init-from", default=None, metavar="LAST_PT",
+                   help="warm start: a new run initialised from another run's last.pt (weights, optimiser states)")
     p.add_argument("--val-every", type=int, default=0, help="validate every N steps (0: every epoch)")
     p.add_argument("--val-max-samples", type=int, default=512)
     p.add_argument("--val-slice", type=int, default=16, help="inputs for the quick best-accuracy")
@@ -60,7 +62,7 @@ def _train(args: argparse.Namespace) -> int:
         cfg = TrainConfig(model=args.model, data=args.data, out=args.out, val_data=args.val_data,
                           epochs=args.epochs, max_minutes=args.max_minutes, batch_size=args.batch_size,
                           lr=args.lr, device=args.device, precision=args.precision, threads=args.threads,
-                          seed=args.seed, resume=args.resume, val_every=args.val_every,
+                          seed=args.seed, resume=args.resume, init_from=args.init_from, val_every=args.val_every,
                           val_max_samples=args.val_max_samples, val_slice=args.val_slice,
                           val_num_samples=args.val_num_samples, best_metric=args.best_metric,
                           log_every=args.log_every, model_config=args.model_config,

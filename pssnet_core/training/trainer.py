@@ -63,6 +63,9 @@ class TrainConfig:
         threads: torch CPU threads (None: torch's default).
         seed: seeds weights, noise and shuffling.
         resume: continue from ``out/last.pt``.
+        init_from: warm start: a new run (step 0, fresh logs, fresh best, no flow pre-training) whose weights
+            and optimiser states come from this training checkpoint (another run's last.pt), e.g. to
+            fine-tune on rebuilt data. The model config is the checkpoint's; ``model_config`` must be unset.
         val_every: validate every this many steps; 0 = at the end of every epoch.
         val_max_samples: validation loss and IoU on at most this many validation samples.
         val_slice: inputs used for the quick best-accuracy.
@@ -87,6 +90,7 @@ class TrainConfig:
     threads: int | None = None
     seed: int = 0
     resume: bool = False
+    init_from: str | None = None
     val_every: int = 0
     val_max_samples: int = 512
     val_slice: int = 16
@@ -106,6 +110,9 @@ class TrainConfig:
             raise TrainingError(f"best_metric must be one of {sorted(BEST_METRICS)}, got {self.best_metric!r}")
         if self.max_minutes is not None and self.max_minutes <= 0:
             raise TrainingError(f"max_minutes must be positive, got {self.max_minutes}")
+        if self.init_from is not None and (self.resume or self.model_config is not None):
+            raise TrainingError("init_from starts a new run from a checkpoint's weights and config: it cannot be "
+                                "combined with resume or model_config")
         if self.val_every < 0 or self.log_every < 1 or self.val_num_samples < 1 or self.val_slice < 0:
             raise TrainingError("val_every >= 0, log_every >= 1, val_num_samples >= 1, val_slice >= 0")
 
@@ -293,8 +300,17 @@ class Trainer:
             if cfg.resume:
                 tqdm.write(f"--resume: no {last_path}; starting a new run")
             torch.manual_seed(cfg.seed)
-            config = self._model_config()
-            model = get_model_class(config.model)(config)
+            if cfg.init_from is not None:
+                model, config, extra = load_checkpoint(cfg.init_from)
+                if extra.get("inference_only") or "optimizers" not in extra:
+                    raise TrainingError(f"{cfg.init_from} is not a training checkpoint (use a run's last.pt)")
+                if config.model != cfg.model:
+                    raise TrainingError(f"{cfg.init_from} holds a {config.model!r} model, not {cfg.model!r}")
+                opt_states = extra["optimizers"]
+                state["init_from"] = str(cfg.init_from)
+            else:
+                config = self._model_config()
+                model = get_model_class(config.model)(config)
             for name in ("train_log.csv", "val_log.csv"):
                 (self.out / name).unlink(missing_ok=True)
         if config.grid_size != self.train_reader.grid_size:
@@ -309,7 +325,7 @@ class Trainer:
                 if name in opt_states:
                     opt.load_state_dict(opt_states[name])
 
-        if state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0:
+        if state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0 and not cfg.init_from:
             t0 = time.perf_counter()
             pre = model.pretrain(self._box_source(), ctx)
             if pre:
@@ -417,6 +433,7 @@ class Trainer:
                    "epochs_completed": state["epoch"], "elapsed_s": elapsed(), "stopped_by": stopped_by,
                    "precision": ctx.precision, "device": str(ctx.device), "best_" + cfg.best_metric: state["best"],
                    "last_validation": last_val, "pretrain": state.get("pretrain"),
+                   "init_from": state.get("init_from"),
                    "train_samples": len(self.train_reader), "data": cfg.data, "val_data": cfg.val_data}
         (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
         plot_curves(self.out, title=f"{config.model} {config.grid_size}^3")
