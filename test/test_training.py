@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -193,6 +195,28 @@ def test_trainer_runs_every_model(tmp_path, dataset, name):
                                   progress=False, val_slice=1, precision="fp32")).fit()
     assert summary["steps"] == 3 and summary["stopped_by"] == "epochs"
     assert math.isfinite(summary["last_validation"]["val_bce"])
+
+
+def test_sigterm_saves_last_checkpoint_like_ctrl_c(tmp_path, dataset):
+    out = tmp_path / "run"
+    argv = [sys.executable, "-c", "import sys; from pssnet_core.cli import main; sys.exit(main())", "train",
+            "--model", "vae", "--data", str(dataset), "--out", str(out), "--epochs", "1000", "--batch-size", "4",
+            "--model-config", _write_tiny_config(tmp_path / "c.yaml", "vae"), "--threads", "1", "--log-every", "1",
+            "--val-slice", "0", "--no-progress"]
+    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "train_log.csv").exists() or len((out / "train_log.csv").read_text().splitlines()) < 3:
+            assert process.poll() is None and time.monotonic() < deadline, process.stdout.read()
+            time.sleep(0.2)
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 130, output
+    assert "interrupted: saving last.pt" in output
+    _, _, extra = load_checkpoint(out / "last.pt")
+    assert extra["train_state"]["step"] >= 2
 
 
 def test_max_minutes_stops_and_saves(tmp_path, dataset):

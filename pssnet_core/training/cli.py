@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 
 from pssnet_core.data.store import DatasetError
@@ -57,6 +58,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.set_defaults(func=_export)
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def _train(args: argparse.Namespace) -> int:
     try:
         cfg = TrainConfig(model=args.model, data=args.data, out=args.out, val_data=args.val_data,
@@ -67,7 +72,13 @@ def _train(args: argparse.Namespace) -> int:
                           val_num_samples=args.val_num_samples, best_metric=args.best_metric,
                           log_every=args.log_every, model_config=args.model_config,
                           half_checkpoint=args.half_checkpoint, progress=not args.no_progress)
-        summary = Trainer(cfg).fit()
+        # SIGTERM (kill, a job scheduler, a background job whose SIGINT the shell ignores) stops like Ctrl-C:
+        # last.pt is saved and --resume continues.
+        previous = signal.signal(signal.SIGTERM, _interrupt)
+        try:
+            summary = Trainer(cfg).fit()
+        finally:
+            signal.signal(signal.SIGTERM, previous)
     except (TrainingError, DatasetError, ConfigError, CheckpointError) as error:
         print(f"pssnet train: error: {error}", file=sys.stderr)
         return 2
