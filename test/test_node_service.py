@@ -108,11 +108,6 @@ def test_round_trip_returns_completions_in_the_request_frame(ros, service, scene
         assert np.ptp(points, axis=0).max() > 0.06, i
 
 
-# The shipped model had 40 minutes of CPU training (README "Known limits"): its samples leave parts of the
-# observed surface out (measured on this scene: 280-380 voxels per sample for 436 observed, 99 % of the
-# observed points within 2.1-4.6 voxels of a sample). strict: once a better model passes, the marker must go.
-@pytest.mark.xfail(strict=True, reason="the short-trained shipped model does not yet reproduce every observed "
-                                       "point within a voxel")
 def test_trained_completions_reproduce_the_observation(ros, service, scene, checkpoint):
     if not checkpoint[1]:
         pytest.skip("needs the shipped default model")
