@@ -102,25 +102,13 @@ def test_round_trip_returns_completions_in_the_request_frame(ros, service, scene
                     "(pssnet_core/checkpoints/default_pssnet_32.pt is missing); the plumbing above passed")
     for i, cloud in enumerate(response.completions):
         points, _ = pointcloud2_to_numpy(cloud)
-        # A mug-sized solid around the observation, not somewhere else and not a speck.
-        assert len(points) > 0.5 * len(known), f"sample {i}: {len(points)} voxels for {len(known)} observed"
+        # A mug-sized solid around the observation, not somewhere else and not a speck ...
+        assert len(points) > len(known), f"sample {i}: {len(points)} voxels for {len(known)} observed"
         assert np.linalg.norm(points.mean(axis=0) - observed.mean(axis=0)) < 0.1, i
         assert np.ptp(points, axis=0).max() > 0.06, i
-
-
-def test_trained_completions_reproduce_the_observation(ros, service, scene, checkpoint):
-    if not checkpoint[1]:
-        pytest.skip("needs the shipped default model")
-    response = call(ros, service, make_request(scene, stamped_header(4321), num_samples=5))
-    assert response.success, response.message
-    known, _ = pointcloud2_to_numpy(response.known_occupied)
-    v, u = np.nonzero((scene.mask > 0) & (scene.depth > 0.1))
-    observed = scene.intrinsics.backproject(u, v, scene.depth[v, u])
-    for i, cloud in enumerate(response.completions):
-        points, _ = pointcloud2_to_numpy(cloud)
-        assert len(points) > len(known), f"sample {i} is smaller than the observed surface"
+        # ... that reproduces the observation: every observed point within ~1 voxel of the sample's voxels
+        # (half diagonal + one voxel).
         distance, _ = cKDTree(points).query(observed)
-        # Every observed point within ~1 voxel of the sample's voxels (half diagonal + one voxel).
         assert np.quantile(distance, 0.99) <= (0.5 * np.sqrt(3) + 1.0) * response.voxel_size, i
 
 
