@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from pssnet_core.models.base import CompletionModel, StepContext, fast_dtype
+from pssnet_core.models.base import CompletionModel, ModelInputError, StepContext, check_box_temperature, fast_dtype
 from pssnet_core.models.config import ModelConfig
 from pssnet_core.training.checkpoint import CheckpointError, load_checkpoint
 
@@ -79,10 +79,13 @@ class Completer:
         threads: torch CPU threads to use (process-wide setting); None leaves torch's default.
         fast: channels_last_3d + bf16 autocast where native; False = plain fp32 eager (reference).
         info: checkpoint metadata (``extra``), kept for callers.
+        box_temperature: default factor on the posterior sigma of the box latent dims (PSSNet; 1.0 = the
+            trained posterior); :meth:`complete` may override it per call.
     """
 
     def __init__(self, model: CompletionModel, config: ModelConfig, device: str | torch.device = "cpu",
-                 threads: int | None = None, fast: bool = True, info: dict[str, Any] | None = None) -> None:
+                 threads: int | None = None, fast: bool = True, info: dict[str, Any] | None = None,
+                 box_temperature: float = 1.0) -> None:
         self.device = torch.device(device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device cuda requested but torch sees no CUDA device")
@@ -94,13 +97,17 @@ class Completer:
         self.info = dict(info or {})
         self.fast = fast
         self.model = model.to(self.device).eval()
+        try:
+            self.box_temperature = check_box_temperature(box_temperature, getattr(model, "box_dim", 0) > 0)
+        except ModelInputError as error:
+            raise ValueError(str(error)) from error
         if fast:
             self.model.to_fast_layout()
         self.ctx = StepContext(self.device, fast_dtype(self.device) if fast else None)
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str | torch.device = "cpu",
-                        threads: int | None = None, fast: bool = True) -> Completer:
+                        threads: int | None = None, fast: bool = True, box_temperature: float = 1.0) -> Completer:
         """Loads a checkpoint (``weights_only``); ``path`` None loads the shipped default 32^3 PSSNet.
 
         Raises:
@@ -115,7 +122,8 @@ class Completer:
                     f"`pssnet export-model runs/pssnet32/best.pt {path}`, or pass a checkpoint path")
         model, config, extra = load_checkpoint(path, map_location="cpu")
         extra["path"] = str(path)
-        return cls(model, config, device=device, threads=threads, fast=fast, info=extra)
+        return cls(model, config, device=device, threads=threads, fast=fast, info=extra,
+                   box_temperature=box_temperature)
 
     @property
     def grid_size(self) -> int:
@@ -151,7 +159,7 @@ class Completer:
         return array[None]
 
     def complete(self, observation: Observation | np.ndarray | torch.Tensor, num_samples: int = 20,
-                 seed: int = 0) -> CompletionResult:
+                 seed: int = 0, box_temperature: float | None = None) -> CompletionResult:
         """Samples ``num_samples`` completions of one observation.
 
         Args:
@@ -159,6 +167,7 @@ class Completer:
                 (channel 0 known occupied, channel 1 known free), numpy or torch.
             num_samples: number of completions (>= 1).
             seed: seed of the latent noise; the same seed gives the same samples.
+            box_temperature: overrides the completer's ``box_temperature`` for this call.
 
         Returns:
             A :class:`CompletionResult`.
@@ -166,10 +175,15 @@ class Completer:
         if isinstance(num_samples, bool) or not isinstance(num_samples, int | np.integer) or num_samples < 1:
             raise CompletionInputError(f"num_samples must be a positive int, got {num_samples!r}")
         x = self._network_input(observation)
+        temperature = self.box_temperature if box_temperature is None else box_temperature
+        try:
+            temperature = check_box_temperature(temperature, getattr(self.model, "box_dim", 0) > 0)
+        except ModelInputError as error:
+            raise CompletionInputError(str(error)) from error
         generator = torch.Generator().manual_seed(int(seed))
         t0 = time.perf_counter()
         with torch.inference_mode(), self.ctx.autocast():
-            probs = self.model.sample(x, int(num_samples), generator=generator)
+            probs = self.model.sample(x, int(num_samples), generator=generator, box_temperature=temperature)
         probs_np = probs[:, 0].float().cpu().numpy()
         elapsed = time.perf_counter() - t0
         return CompletionResult(probabilities=probs_np, occupancy=probs_np > 0.5, grid_size=self.grid_size,

@@ -86,6 +86,20 @@ def test_bad_inputs(tmp_path):
         completer.complete([1, 2, 3], 2)
 
 
+def test_box_temperature_is_a_completer_default_that_a_call_overrides(tmp_path):
+    path = checkpoint(tmp_path)
+    obs = FakeObservation()
+    plain = Completer.from_checkpoint(path).complete(obs, 4, seed=2).probabilities
+    warm = Completer.from_checkpoint(path, box_temperature=2.0)
+    assert warm.box_temperature == 2.0
+    np.testing.assert_array_equal(warm.complete(obs, 4, seed=2, box_temperature=1.0).probabilities, plain)
+    assert np.abs(warm.complete(obs, 4, seed=2).probabilities - plain).max() > 1e-4
+    with pytest.raises(CompletionInputError, match="box_temperature"):
+        warm.complete(obs, 2, box_temperature=-1.0)
+    with pytest.raises(ValueError, match="box_temperature"):
+        Completer.from_checkpoint(checkpoint(tmp_path, "vae"), box_temperature=2.0)
+
+
 def test_missing_default_checkpoint_says_how_to_train(tmp_path, monkeypatch):
     monkeypatch.setattr(inference, "DEFAULT_CHECKPOINT", tmp_path / "absent.pt")
     with pytest.raises(CheckpointError, match="pssnet train"):

@@ -280,3 +280,27 @@ def test_channels_last_bf16_matches_fp32_closely():
             fast = model.sample(x, 4, generator=g())
     assert fast.dtype == torch.float32
     assert float((fast - ref).abs().max()) < 0.05
+
+
+def test_box_temperature_scales_only_the_box_dims_of_the_posterior_noise(monkeypatch):
+    model = tiny_model("pssnet").eval()
+    x = batch(1)["input"]
+    latents: list[torch.Tensor] = []
+    decode = model.decode
+    monkeypatch.setattr(model, "decode", lambda z: (latents.append(z.clone()), decode(z))[1])
+    with torch.inference_mode():
+        mu, _ = model.encode(x)
+        for t in (1.0, 3.0):
+            model.sample(x, 4, generator=torch.Generator().manual_seed(0), box_temperature=t)
+    k = model.box_dim
+    plain, hot = latents[0] - mu, latents[1] - mu
+    assert torch.allclose(hot[:, :k], 3.0 * plain[:, :k], atol=1e-5)
+    assert torch.equal(hot[:, k:], plain[:, k:])
+
+
+@pytest.mark.parametrize("name,temperature", [("pssnet", 0.0), ("pssnet", math.inf), ("pssnet", 11.0),
+                                              ("vae", 2.0), ("recgan", 2.0)])
+def test_box_temperature_out_of_range_or_without_a_box_part_is_refused(name, temperature):
+    model = tiny_model(name).eval()
+    with pytest.raises(ModelInputError, match="box_temperature"):
+        model.sample(torch.zeros(1, 2, GRID, GRID, GRID), 2, box_temperature=temperature)

@@ -183,9 +183,41 @@ def test_init_from_starts_a_new_run_from_another_runs_weights(tmp_path, dataset)
                     init_from=str(tmp_path / "a" / "last.pt"))
     assert run_cli("train", "--model", "vae", "--out", str(tmp_path / "d"), "--init-from",
                    str(tmp_path / "a" / "last.pt"), *common) == 2
+
+
+def test_init_from_an_inference_only_export_takes_its_weights_and_pretrains_the_flow(tmp_path, dataset):
+    cfg = _write_tiny_config(tmp_path / "tiny.yaml", "pssnet")
+    assert run_cli("train", "--model", "pssnet", "--out", str(tmp_path / "a"), "--model-config", cfg,
+                   "--epochs", "1", "--data", str(dataset), "--batch-size", "8", "--threads", "1",
+                   "--val-slice", "0", "--no-progress") == 0
     assert run_cli("export-model", str(tmp_path / "a" / "last.pt"), str(tmp_path / "ship.pt")) == 0
-    assert run_cli("train", "--model", "pssnet", "--out", str(tmp_path / "e"), "--init-from",
-                   str(tmp_path / "ship.pt"), *common) == 2
+    shipped, _, _ = load_checkpoint(tmp_path / "ship.pt")
+    summary = Trainer(TrainConfig(model="pssnet", data=str(dataset), out=str(tmp_path / "b"), epochs=1,
+                                  batch_size=8, max_steps=1, val_slice=0, progress=False, log_every=1,
+                                  init_from=str(tmp_path / "ship.pt"))).fit()
+    assert summary["steps"] == 1 and summary["stopped_by"] == "max_steps"
+    assert summary["pretrain"] is not None  # the export has no flow: it is pre-trained again
+    warm, _, extra = load_checkpoint(tmp_path / "b" / "last.pt")
+    assert extra["optimizers"]["main"]["state"][0]["step"] == 1  # fresh optimiser, one update
+    shipped_state = shipped.state_dict()
+    moved = [float((v - shipped_state[k].float()).abs().max()) for k, v in warm.state_dict().items()
+             if not k.startswith("flow.") and v.is_floating_point()]
+    assert 0 < max(moved) < 0.05  # one step away from the exported weights (fp16-rounded), not a fresh init
+    with pytest.raises(TrainingError, match="holds a 'pssnet' model"):
+        Trainer(TrainConfig(model="vae", data=str(dataset), out=str(tmp_path / "c"), epochs=1, batch_size=8,
+                            progress=False, init_from=str(tmp_path / "ship.pt"))).fit()
+
+
+def test_max_steps_stops_the_run_and_counts_across_resume(tmp_path, dataset):
+    cfg = _write_tiny_config(tmp_path / "tiny.yaml", "vae")
+    run = {"model": "vae", "data": str(dataset), "out": str(tmp_path / "r"), "epochs": 5, "batch_size": 8,
+           "model_config": cfg, "val_slice": 0, "progress": False, "log_every": 1, "precision": "fp32"}
+    summary = Trainer(TrainConfig(**run, max_steps=2)).fit()
+    assert summary["steps"] == 2 and summary["stopped_by"] == "max_steps"
+    summary = Trainer(TrainConfig(**{**run, "model_config": None}, max_steps=4, resume=True)).fit()
+    assert summary["steps"] == 4 and summary["stopped_by"] == "max_steps"
+    with pytest.raises(TrainingError, match="max_steps"):
+        TrainConfig(**run, max_steps=0)
 
 
 @pytest.mark.parametrize("name", ["vae", "vae_gan", "recgan"])

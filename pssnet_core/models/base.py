@@ -17,6 +17,7 @@ Interface (what the trainer and the inference facade call):
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import lru_cache
@@ -150,8 +151,8 @@ class CompletionModel(nn.Module):
         """Deterministic completion logits (B,1,N,N,N)."""
         raise NotImplementedError
 
-    def sample(self, x: torch.Tensor, num_samples: int,
-               generator: torch.Generator | None = None) -> torch.Tensor:
+    def sample(self, x: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
+               box_temperature: float = 1.0) -> torch.Tensor:
         """Samples completions.
 
         Args:
@@ -159,6 +160,8 @@ class CompletionModel(nn.Module):
             num_samples: completions per input.
             generator: CPU generator for the latent noise (drawn on the CPU, then moved, so that a seed gives
                 the same samples on every device).
+            box_temperature: factor on the posterior standard deviation of the box latent dims (PSSNet only;
+                models without a box part accept only 1.0). See :func:`check_box_temperature`.
 
         Returns:
             float32 occupancy probabilities (B * num_samples, 1, N, N, N); rows ``b * num_samples`` to
@@ -180,6 +183,23 @@ def bce_sum(logits: torch.Tensor, target: torch.Tensor, pos_weight: float | None
         neg = nn.functional.softplus(logits)  # -log(1 - sigmoid(l))
         loss = pos_weight * target * pos + (1.0 - pos_weight) * (1.0 - target) * neg
     return loss.flatten(1).sum(1).mean()
+
+
+MAX_BOX_TEMPERATURE = 10.0
+
+
+def check_box_temperature(box_temperature: float, has_box: bool) -> float:
+    """Validates a box temperature: finite, in (0, MAX_BOX_TEMPERATURE], and 1.0 for models without a box part.
+
+    Why a temperature: a posterior that is too narrow on ambiguous views can be widened along the box
+    dims alone (the decoder moves hidden parts, e.g. a handle, with z_box) without deforming the rest.
+    """
+    t = float(box_temperature)
+    if not math.isfinite(t) or not 0.0 < t <= MAX_BOX_TEMPERATURE:
+        raise ModelInputError(f"box_temperature must lie in (0, {MAX_BOX_TEMPERATURE}], got {box_temperature!r}")
+    if not has_box and t != 1.0:
+        raise ModelInputError(f"this model has no box latent; box_temperature must be 1.0, got {t}")
+    return t
 
 
 def check_num_samples(num_samples: int) -> int:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from pssnet_core.models.base import CompletionModel, StepContext, check_num_samples
+from pssnet_core.models.base import CompletionModel, StepContext, check_box_temperature, check_num_samples
 from pssnet_core.models.config import RecGANConfig
 from pssnet_core.models.networks import Discriminator3D, UNet3D
 from pssnet_core.models.vae import _gan_update
@@ -55,10 +55,11 @@ class RecGAN(CompletionModel):
     def reconstruct(self, x: torch.Tensor) -> torch.Tensor:
         return self.generator(self.check_input(x))
 
-    def sample(self, x: torch.Tensor, num_samples: int,
-               generator: torch.Generator | None = None) -> torch.Tensor:
+    def sample(self, x: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
+               box_temperature: float = 1.0) -> torch.Tensor:
         """The one deterministic completion, repeated ``num_samples`` times (``generator`` is unused)."""
         check_num_samples(num_samples)
+        check_box_temperature(box_temperature, has_box=False)
         del generator
         probs = torch.sigmoid(self.generator(self.check_input(x)).float())
         return probs.repeat_interleave(num_samples, 0)

@@ -34,6 +34,7 @@ from pssnet_core.models.base import (
     CompletionModel,
     StepContext,
     bce_sum,
+    check_box_temperature,
     check_num_samples,
     fp32_region,
 )
@@ -98,12 +99,17 @@ class VAE(CompletionModel):
         mu, _ = self.encode(self.check_input(x))
         return self.decode(mu)
 
-    def sample(self, x: torch.Tensor, num_samples: int,
-               generator: torch.Generator | None = None) -> torch.Tensor:
+    box_dim = 0  # leading latent dims that encode the box (PSSNet)
+
+    def sample(self, x: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
+               box_temperature: float = 1.0) -> torch.Tensor:
         check_num_samples(num_samples)
+        t = check_box_temperature(box_temperature, self.box_dim > 0)
         mu, logvar = self.encode(self.check_input(x))  # encoder once
         b = mu.shape[0]
         eps = torch.randn(b * num_samples, self.latent_dim, generator=generator).to(mu.device)
+        if t != 1.0:
+            eps[:, :self.box_dim] *= t
         z = mu.repeat_interleave(num_samples, 0) + torch.exp(0.5 * logvar).repeat_interleave(num_samples, 0) * eps
         return torch.sigmoid(self.decode(z).float())  # decoder on all latents in one batch
 

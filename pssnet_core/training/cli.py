@@ -26,6 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--val-data", default=None, help="validation dataset (default: a slice of --data)")
     p.add_argument("--epochs", type=int, default=10)
     p.add_argument("--max-minutes", type=float, default=None, help="wall-clock budget of this invocation")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="optimiser-step budget of the run (the fair budget on a shared machine)")
     p.add_argument("--batch-size", type=int, default=16, help="paper: 16")
     p.add_argument("--lr", type=float, default=1e-3, help="main Adam learning rate (paper: 1e-3)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -34,8 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    p.add_argument("--init-from", default=None, metavar="LAST_PT",
-                   help="warm start: a new run initialised from another run's last.pt (weights, optimiser states)")
+    p.add_argument("--init-from", default=None, metavar="CHECKPOINT",
+                   help="warm start a new run: from another run's last.pt (weights + optimiser states) or from an "
+                        "inference-only export such as the shipped model (weights; the flow is pre-trained)")
     p.add_argument("--val-every", type=int, default=0, help="validate every N steps (0: every epoch)")
     p.add_argument("--val-max-samples", type=int, default=512)
     p.add_argument("--val-slice", type=int, default=16, help="inputs for the quick best-accuracy")
@@ -65,7 +68,8 @@ def _interrupt(signum: int, frame: object) -> None:
 def _train(args: argparse.Namespace) -> int:
     try:
         cfg = TrainConfig(model=args.model, data=args.data, out=args.out, val_data=args.val_data,
-                          epochs=args.epochs, max_minutes=args.max_minutes, batch_size=args.batch_size,
+                          epochs=args.epochs, max_minutes=args.max_minutes, max_steps=args.max_steps,
+                          batch_size=args.batch_size,
                           lr=args.lr, device=args.device, precision=args.precision, threads=args.threads,
                           seed=args.seed, resume=args.resume, init_from=args.init_from, val_every=args.val_every,
                           val_max_samples=args.val_max_samples, val_slice=args.val_slice,

@@ -56,6 +56,8 @@ class TrainConfig:
         val_data: validation dataset; None validates on the first ``val_max_samples`` training samples.
         epochs: passes over the training data.
         max_minutes: wall-clock budget (training + validation); None = no limit.
+        max_steps: optimiser-step budget of the whole run (counted across --resume); None = no limit. The fair
+            budget when runs share a loaded machine, where minutes buy different numbers of steps.
         batch_size: samples per step (paper: 16).
         lr: learning rate of the main optimiser (paper: Adam 1e-3).
         device: "cpu" or "cuda" (or "cuda:1").
@@ -63,9 +65,11 @@ class TrainConfig:
         threads: torch CPU threads (None: torch's default).
         seed: seeds weights, noise and shuffling.
         resume: continue from ``out/last.pt``.
-        init_from: warm start: a new run (step 0, fresh logs, fresh best, no flow pre-training) whose weights
-            and optimiser states come from this training checkpoint (another run's last.pt), e.g. to
-            fine-tune on rebuilt data. The model config is the checkpoint's; ``model_config`` must be unset.
+        init_from: warm start: a new run (step 0, fresh logs, fresh best) whose weights come from this
+            checkpoint, e.g. to fine-tune on rebuilt data. From a training checkpoint (another run's last.pt)
+            the optimiser states come too and the flow is not pre-trained again; from an inference-only export
+            (the shipped model) only the weights come, and the flow it lacks is pre-trained. The model config
+            is the checkpoint's; ``model_config`` must be unset.
         val_every: validate every this many steps; 0 = at the end of every epoch.
         val_max_samples: validation loss and IoU on at most this many validation samples.
         val_slice: inputs used for the quick best-accuracy.
@@ -83,6 +87,7 @@ class TrainConfig:
     val_data: str | None = None
     epochs: int = 10
     max_minutes: float | None = None
+    max_steps: int | None = None
     batch_size: int = 16
     lr: float = 1e-3
     device: str = "cpu"
@@ -110,6 +115,8 @@ class TrainConfig:
             raise TrainingError(f"best_metric must be one of {sorted(BEST_METRICS)}, got {self.best_metric!r}")
         if self.max_minutes is not None and self.max_minutes <= 0:
             raise TrainingError(f"max_minutes must be positive, got {self.max_minutes}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise TrainingError(f"max_steps must be >= 1, got {self.max_steps}")
         if self.init_from is not None and (self.resume or self.model_config is not None):
             raise TrainingError("init_from starts a new run from a checkpoint's weights and config: it cannot be "
                                 "combined with resume or model_config")
@@ -302,12 +309,15 @@ class Trainer:
             torch.manual_seed(cfg.seed)
             if cfg.init_from is not None:
                 model, config, extra = load_checkpoint(cfg.init_from)
-                if extra.get("inference_only") or "optimizers" not in extra:
-                    raise TrainingError(f"{cfg.init_from} is not a training checkpoint (use a run's last.pt)")
                 if config.model != cfg.model:
                     raise TrainingError(f"{cfg.init_from} holds a {config.model!r} model, not {cfg.model!r}")
-                opt_states = extra["optimizers"]
+                # A training checkpoint (last.pt) brings its optimiser states; an inference-only export (e.g.
+                # the shipped model) brings weights only: fresh optimisers, and its dropped training-only
+                # modules (PSSNet's flow) are pre-trained again below.
+                weights_only = bool(extra.get("inference_only")) or "optimizers" not in extra
+                opt_states = None if weights_only else extra["optimizers"]
                 state["init_from"] = str(cfg.init_from)
+                state["init_weights_only"] = weights_only
             else:
                 config = self._model_config()
                 model = get_model_class(config.model)(config)
@@ -325,7 +335,8 @@ class Trainer:
                 if name in opt_states:
                     opt.load_state_dict(opt_states[name])
 
-        if state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0 and not cfg.init_from:
+        fresh_run = state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0
+        if fresh_run and (not cfg.init_from or state.get("init_weights_only")):
             t0 = time.perf_counter()
             pre = model.pretrain(self._box_source(), ctx)
             if pre:
@@ -379,6 +390,8 @@ class Trainer:
             plot_curves(self.out, title=f"{config.model} {config.grid_size}^3")
             return result
 
+        if cfg.max_steps is not None and state["step"] >= cfg.max_steps:
+            stopped_by = "max_steps"  # resumed a finished run: validate and summarise only
         try:
             while state["epoch"] < cfg.epochs and stopped_by == "epochs":
                 epoch = state["epoch"]
@@ -414,6 +427,9 @@ class Trainer:
                         last_val = run_validation()
                     if time.perf_counter() - invocation_start > budget_s:
                         stopped_by = "max_minutes"
+                        break
+                    if cfg.max_steps is not None and state["step"] >= cfg.max_steps:
+                        stopped_by = "max_steps"
                         break
                 bar.close()
                 if stopped_by == "epochs":
