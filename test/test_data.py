@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 
 import numpy as np
 import open3d as o3d
@@ -341,3 +342,50 @@ def test_cli_build_preview_stats(tmp_path, capsys):
     # Bad input: a clear error and exit code 2, not a traceback.
     assert run_cli(["dataset", "stats", str(tmp_path / "nothing")]) == 2
     assert "no dataset" in capsys.readouterr().err
+
+
+def test_large_scale_is_many_objects_few_random_yaw_views_and_half_noisy():
+    large = {s.name: s for s in dataset_specs("all", "train", scale="large")}
+    assert {s.num_objects for s in large.values()} == {20_000} and {s.views for s in large.values()} == {4}
+    assert sum(s.num_samples for s in large.values()) >= 150_000
+    assert all(s.random_yaw and s.noise is not None and s.noise_fraction == 0.5 for s in large.values())
+    assert not {str(i) for s in large.values() for i in s.object_identities()[:500]} & \
+        {str(i) for s in dataset_specs("all", "val") for i in s.object_identities()}
+    # Validation and test sets do not depend on the scale: models of either scale are compared alike.
+    for split in ("val", "test"):
+        assert dataset_specs("all", split, scale="large") == dataset_specs("all", split)
+    with pytest.raises(DatasetSpecError, match="scale"):
+        dataset_specs("all", "train", scale="huge")
+    with pytest.raises(DatasetSpecError, match="noise_fraction"):
+        dataclasses.replace(large["mugs"], noise_fraction=1.5)
+
+    spec = dataclasses.replace(large["mugs"], num_objects=1, views=8, grid_size=16)
+    assert spec_roundtrip(spec) == spec
+    identity = spec.object_identities()[0]
+    scene = ObjectScene(make_shape(identity.family, identity.seed))
+    samples = [make_sample(spec, i, scene) for i in range(spec.views)]
+    yaws = [s["rotation_deg"] for s in samples]
+    assert len({round(y, 3) for y in yaws}) == 8 and all(0 <= y < 360 for y in yaws)
+    assert sorted(yaws) != [i * 45.0 for i in range(8)]  # drawn, not the fixed steps
+    noisy = [s["noise"] is not None for s in samples]
+    assert any(noisy) and not all(noisy)  # half of the views on average: both kinds in 8 draws (seeded)
+    for sample in samples:  # the record says what the view got: re-rendering reproduces the stored crop
+        depth, _ = full_images(sample)
+        again = rerender(sample, scene.shape)
+        v0, u0 = sample["crop"]
+        h, w = sample["depth"].shape
+        np.testing.assert_allclose(again.depth[v0:v0 + h, u0:u0 + w], depth[v0:v0 + h, u0:u0 + w], atol=6e-4)
+
+
+def test_a_build_spec_written_before_a_field_existed_still_resumes(tmp_path):
+    spec = dataset_specs("mugs", "train", grid_size=16, num_objects=1, views=2)[0]
+    first = build_dataset(spec, tmp_path / "a", workers=1, progress=False)
+    spec_file = first.path / "build_spec.json"
+    old = json.loads(spec_file.read_text())
+    for field in ("noise_fraction", "random_yaw"):
+        del old["spec"][field]
+    spec_file.write_text(json.dumps(old))
+    again = build_dataset(spec, first.path, workers=1, progress=False)
+    assert again.shards_built == 0 and again.samples == 2
+    with pytest.raises(DatasetSpecError, match="different build"):
+        build_dataset(dataclasses.replace(spec, random_yaw=True), first.path, workers=1, progress=False)

@@ -77,6 +77,12 @@ def _check_spec_file(root: Path, spec: DatasetSpec) -> None:
             found = json.loads(path.read_text())
         except json.JSONDecodeError as error:
             raise DatasetSpecError(f"{path} is corrupt ({error}); delete {root} and build again") from error
+        if isinstance(found, dict) and isinstance(found.get("spec"), dict):
+            # Specs written before a field existed lack it: read them with that field's default.
+            try:
+                found["spec"] = json.loads(json.dumps(DatasetSpec.from_dict(found["spec"]).to_dict()))
+            except (TypeError, DatasetSpecError):
+                pass  # a spec this code cannot read differs from the request; refused below
         if found != wanted:
             raise DatasetSpecError(
                 f"{root} holds shards of a different build ({SPEC_FILE} differs from this request); "
@@ -144,12 +150,12 @@ def build_dataset(spec: DatasetSpec, root: str | Path, workers: int = 1, progres
 def build(family: str, split: str, out: str | Path, grid_size: int = 32, workers: int = 1, seed: int = 0,
           num_objects: int | None = None, views: int | None = None, noise: Any = None,
           front_margin: float | None = None, bottom_margin: float | None = None,
-          progress: bool = True) -> list[BuildResult]:
+          progress: bool = True, scale: str = "default") -> list[BuildResult]:
     """Builds every dataset of ``family`` ("mugs", "ycb", "all") and ``split`` under ``out``.
 
     See :func:`pssnet_core.data.datasets.dataset_specs` for the datasets and their defaults, and
     :func:`dataset_path` for where each goes.
     """
     specs = dataset_specs(family, split, grid_size=grid_size, seed=seed, num_objects=num_objects, views=views,
-                          noise=noise, front_margin=front_margin, bottom_margin=bottom_margin)
+                          noise=noise, front_margin=front_margin, bottom_margin=bottom_margin, scale=scale)
     return [build_dataset(spec, dataset_path(out, spec), workers=workers, progress=progress) for spec in specs]

@@ -17,7 +17,8 @@ def _build(args: argparse.Namespace) -> int:
 
     results = build(args.family, args.split, args.out, grid_size=args.grid, workers=args.workers, seed=args.seed,
                     num_objects=args.num_objects, views=args.views, noise=SensorNoise() if args.noise else None,
-                    front_margin=args.front_margin, bottom_margin=args.bottom_margin, progress=not args.quiet)
+                    front_margin=args.front_margin, bottom_margin=args.bottom_margin, progress=not args.quiet,
+                    scale=args.scale)
     for r in results:
         state = f"built {r.shards_built} shards" + (f", {r.shards_skipped} already there" if r.shards_skipped else "")
         print(f"{r.path}: {r.samples} samples ({state}) in {r.seconds:.1f} s")
@@ -81,6 +82,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--views", type=int, default=None, help="views per object (default 72 mugs, 24 ycb train, "
                    "72 ycb test)")
     b.add_argument("--noise", action="store_true", help="add Kinect-like depth noise and edge dropout")
+    b.add_argument("--scale", choices=("default", "large"), default="default",
+                   help="large (train only): 20,000 mugs + 20,000 ycb objects x 4 random-yaw views, noise on half "
+                        "of the views (160,000 views); val and test are the same at every scale")
     b.add_argument("--front-margin", type=float, default=None, help="grid front margin in voxels "
                    "(default GridConfig's; the node must use the same)")
     b.add_argument("--bottom-margin", type=float, default=None, help="grid bottom margin in voxels (likewise)")

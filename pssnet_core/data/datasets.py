@@ -19,6 +19,12 @@ The experiments (DESIGN.md, paper Sec. 5):
 * ``ycb_narrow`` / ``ycb_wide`` (test): the same 24 rotations, each seen through a fixed slit (3.6 cm / 18 cm)
   at three translations of the object across the slit (-1, 0, +1 cm, limited to a quarter of the object's
   visible width so that the slit always stays over the object's central part): 72 views per object.
+* ``--scale large`` (train only): many objects, few views each (20,000 mugs and 20,000 ycb objects x 4
+  views = 160,000 views). With 4 views the fixed yaw steps above would show every object from the same few
+  sides, so each view draws its yaw uniformly in [0, 360) (``random_yaw``; ycb: every other view tipped 90
+  degrees), and Kinect-like noise is on for half of the views (``noise_fraction``). Why: with a few hundred
+  objects the encoder recognises a training object from its visible side and recalls its hidden side, so
+  the posterior learns little of the ambiguity; objects here are as cheap as views.
 """
 
 from __future__ import annotations
@@ -62,6 +68,11 @@ DEFAULT_OBJECTS: dict[tuple[str, str], int] = {
     ("mugs", "test"): 12, ("ycb_narrow", "test"): 12, ("ycb_wide", "test"): 12,
     ("mugs", "val"): 6, ("ycb", "val"): 16,
 }
+SCALES = ("default", "large")
+LARGE_TRAIN_OBJECTS = 20_000  # per family group (mugs; ycb), see the module docstring
+LARGE_TRAIN_VIEWS = 4
+LARGE_NOISE_FRACTION = 0.5
+LARGE_OBJECTS_PER_SHARD = 32  # 128 views a shard: training mixes two shards, so a batch spans ~64 objects
 
 
 class DatasetSpecError(ValueError):
@@ -97,6 +108,9 @@ class DatasetSpec:
         aim_jitter_m: the camera aims at the object's box centre plus a uniform offset within +- this (m).
         objects_per_shard: objects per shard (the unit of parallel work and of resuming).
         noise: sensor imperfections, or None for exact depth (the default; ground truth is always exact).
+        noise_fraction: share of the views that get ``noise`` (drawn per view; 1.0 = all).
+        random_yaw: each view draws the object's yaw uniformly in [0, 360) instead of the fixed steps
+            (ycb: tipped 90 degrees on odd views); for datasets of many objects with few views each.
         image_width: image width (pixels; Kinect-like intrinsics scaled to it).
         image_height: image height (pixels).
     """
@@ -123,6 +137,8 @@ class DatasetSpec:
     aim_jitter_m: float = 0.01
     objects_per_shard: int = 4
     noise: SensorNoise | None = None
+    noise_fraction: float = 1.0
+    random_yaw: bool = False
     image_width: int = 640
     image_height: int = 480
 
@@ -137,7 +153,9 @@ class DatasetSpec:
             raise DatasetSpecError(f"slit_mode must be one of {SLIT_MODES}, got {self.slit_mode!r}")
         if self.slit_mode == "fixed" and not (self.slit_width_m and self.slit_width_m > 0):
             raise DatasetSpecError("a fixed slit needs a positive slit_width_m")
-        if not self.is_mugs and self.views > self.combinations:
+        if not 0.0 <= self.noise_fraction <= 1.0:
+            raise DatasetSpecError(f"noise_fraction must lie in [0, 1], got {self.noise_fraction}")
+        if not self.is_mugs and not self.random_yaw and self.views > self.combinations:
             raise DatasetSpecError(
                 f"{self.name} has {self.combinations} rotation/translation combinations per object; "
                 f"views must be at most that, got {self.views}")
@@ -206,7 +224,8 @@ class DatasetSpec:
 
 def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, num_objects: int | None = None,
                   views: int | None = None, noise: SensorNoise | None = None,
-                  front_margin: float | None = None, bottom_margin: float | None = None) -> list[DatasetSpec]:
+                  front_margin: float | None = None, bottom_margin: float | None = None,
+                  scale: str = "default") -> list[DatasetSpec]:
     """The datasets of an experiment family and split.
 
     Args:
@@ -220,7 +239,12 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         noise: sensor imperfections (None: exact depth).
         front_margin: grid placement margin override (voxels; default GridConfig's).
         bottom_margin: grid placement margin override (voxels; default GridConfig's).
+        scale: "default" or "large" (train: 20,000 objects per family group x 4 random-yaw views, noise on
+            half of the views unless ``noise`` is given; val and test are the same at every scale, so that
+            models trained at either scale are validated and tested alike).
     """
+    if scale not in SCALES:
+        raise DatasetSpecError(f"scale must be one of {SCALES}, got {scale!r}")
     if family not in ("mugs", "ycb", "all"):
         raise DatasetSpecError(f"family must be mugs, ycb or all, got {family!r}")
     if split not in ("train", "val", "test"):
@@ -246,6 +270,11 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
                     ycb_translation_m=0.0, num_objects=DEFAULT_OBJECTS[(name, split)], objects_per_shard=4,
                     **common))
     overrides: dict[str, Any] = {}
+    if scale == "large" and split == "train":
+        overrides.update(num_objects=LARGE_TRAIN_OBJECTS, views=LARGE_TRAIN_VIEWS, random_yaw=True,
+                         objects_per_shard=LARGE_OBJECTS_PER_SHARD)
+        if noise is None:
+            overrides.update(noise=SensorNoise(), noise_fraction=LARGE_NOISE_FRACTION)
     if num_objects is not None:
         overrides["num_objects"] = int(num_objects)
     if views is not None:
@@ -274,6 +303,7 @@ class ViewPlan:
     slit: Slit | None
     noise_seed: int
     translation_step: int | None
+    noisy: bool
 
 
 def plan_view(spec: DatasetSpec, index: int, attempt: int = 0) -> ViewPlan:
@@ -281,14 +311,20 @@ def plan_view(spec: DatasetSpec, index: int, attempt: int = 0) -> ViewPlan:
     obj, view = divmod(index, spec.views)
     rng = _rng(spec, 0, index, attempt)
     step = None
+    # Draws added after the first datasets were built use their own stream, so those datasets stay the same.
+    extra = _rng(spec, 2, index, attempt)
     if spec.is_mugs:
-        yaw, tip, translation = view * 360.0 / spec.views, 0.0, (0.0, 0.0)
+        yaw = float(extra.uniform(0.0, 360.0)) if spec.random_yaw else view * 360.0 / spec.views
+        tip, translation = 0.0, (0.0, 0.0)
     else:
         combo = view * spec.combinations // spec.views
         rotation, step_index = divmod(combo, max(spec.translations, 1))
         yaw_offset = float(_rng(spec, 1, obj).uniform(0.0, 30.0))  # per object, same for all its views
-        yaw = (rotation % 12) * 30.0 + yaw_offset
-        tip = 90.0 * (rotation // 12)
+        if spec.random_yaw:
+            yaw, tip = float(extra.uniform(0.0, 360.0)), 90.0 * (view % 2)
+        else:
+            yaw = (rotation % 12) * 30.0 + yaw_offset
+            tip = 90.0 * (rotation // 12)
         t = spec.ycb_translation_m
         translation = tuple(float(x) for x in rng.uniform(-t, t, size=2)) if t > 0 else (0.0, 0.0)
         if spec.slit_mode == "fixed":
@@ -307,7 +343,8 @@ def plan_view(spec: DatasetSpec, index: int, attempt: int = 0) -> ViewPlan:
         yaw_deg=float(yaw), tip_deg=float(tip), translation=translation,
         distance_m=float(rng.uniform(*spec.distance_range_m)), tilt_deg=float(rng.uniform(*spec.tilt_range_deg)),
         aim_offset=tuple(float(x) for x in rng.uniform(-spec.aim_jitter_m, spec.aim_jitter_m, size=3)),
-        slit=slit, noise_seed=int(rng.integers(2**31)), translation_step=step)
+        slit=slit, noise_seed=int(rng.integers(2**31)), translation_step=step,
+        noisy=spec.noise is not None and (spec.noise_fraction >= 1.0 or extra.random() < spec.noise_fraction))
 
 
 def make_sample(spec: DatasetSpec, index: int, scene: ObjectScene) -> dict[str, Any]:
@@ -332,7 +369,7 @@ def make_sample(spec: DatasetSpec, index: int, scene: ObjectScene) -> dict[str, 
         target = posed_box_corners(shape, pose).mean(axis=0) + np.asarray(plan.aim_offset)
         camera = orbit_camera(target, plan.distance_m, plan.tilt_deg)
         try:
-            view = scene.render(pose, camera, intrinsics, slit=plan.slit, noise=spec.noise,
+            view = scene.render(pose, camera, intrinsics, slit=plan.slit, noise=spec.noise if plan.noisy else None,
                                 noise_seed=plan.noise_seed)
             obs = view.observe(config)
         except (SceneError, ObservationError) as error:  # e.g. too few pixels left in a slit: redraw
@@ -377,7 +414,7 @@ def make_sample(spec: DatasetSpec, index: int, scene: ObjectScene) -> dict[str, 
         "has_handle": shape.handle is not None if shape.identity.family == "mug" else None,
         "slit_width_m": None if plan.slit is None else plan.slit.width_m,
         "slit_columns": None if view.slit_columns is None else list(view.slit_columns),
-        "noise": None if spec.noise is None else asdict(spec.noise),
+        "noise": asdict(spec.noise) if plan.noisy else None,
         "noise_seed": plan.noise_seed,
         "attempts": attempt + 1,
         "crop": [v0, u0],
@@ -440,7 +477,7 @@ def rerender(sample: dict[str, Any], shape: Shape | None = None) -> RenderedView
 
 
 __all__ = [
-    "CROP_MARGIN_PX", "DATASET_NAMES", "DEFAULT_OBJECTS", "DatasetSpec", "DatasetSpecError", "MUG_VIEWS",
+    "CROP_MARGIN_PX", "DATASET_NAMES", "DEFAULT_OBJECTS", "SCALES", "DatasetSpec", "DatasetSpecError", "MUG_VIEWS",
     "NARROW_SLIT_M", "WIDE_SLIT_M", "YCB_ROTATIONS", "ViewPlan", "dataset_specs", "full_images", "make_sample",
     "plan_view", "rerender", "sample_intrinsics",
 ]
