@@ -1,4 +1,4 @@
-"""``pssnet train`` and ``pssnet export-model`` subcommands (also runnable alone: see :func:`main`)."""
+"""``pssnet train``, ``export-model`` and ``posterior`` subcommands (also runnable alone: see :func:`main`)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import signal
 import sys
 
-from pssnet_core.data.store import DatasetError
+from pssnet_core.data.store import DatasetError, DatasetReader
 from pssnet_core.models.config import ConfigError
 from pssnet_core.models.registry import model_names
 from pssnet_core.training.checkpoint import CheckpointError, export_checkpoint, read_checkpoint
@@ -14,7 +14,7 @@ from pssnet_core.training.trainer import BEST_METRICS, TrainConfig, Trainer, Tra
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Adds ``train`` and ``export-model`` to the ``pssnet`` command line."""
+    """Adds ``train``, ``export-model`` and ``posterior`` to the ``pssnet`` command line."""
     p = subparsers.add_parser(
         "train", help="train a completion model (pssnet, vae, vae_gan, recgan) on a dataset directory",
         description="Trains a model on a dataset written by `pssnet dataset build`; writes last.pt (resumable), "
@@ -59,6 +59,66 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--keep-training-modules", action="store_true",
                    help="keep the flow / discriminator (needed to fine-tune from the export)")
     e.set_defaults(func=_export)
+
+    q = subparsers.add_parser(
+        "posterior", help="posterior-mean BCE/IoU per split (memorisation gap) and box-posterior width",
+        description="For each checkpoint and dataset: BCE per voxel and IoU of decode(mu), the BCE relative to "
+                    "the dataset labelled 'train', and the mean posterior sigma of the box dims on mug views "
+                    "with the handle hidden and visible (see pssnet_core/training/posterior.py).")
+    q.add_argument("--checkpoints", required=True, help="comma-separated checkpoints (best.pt or exports)")
+    q.add_argument("--labels", default=None, help="comma-separated names for the checkpoints")
+    q.add_argument("--data", action="append", required=True, metavar="LABEL=DIR[,DIR]",
+                   help="a dataset to measure, repeatable; label one 'train' to get the gap ratios")
+    q.add_argument("--max-views", type=int, default=None, help="views per dataset, spread evenly (default all)")
+    q.add_argument("--threads", type=int, default=2)
+    q.add_argument("--out", default=None, help="directory for posterior.txt and posterior.json")
+    q.set_defaults(func=_posterior)
+
+
+def _posterior(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from pssnet_core.training.checkpoint import load_checkpoint
+    from pssnet_core.training.posterior import format_table, posterior_stats, stats_dict
+    from pssnet_core.training.trainer import resolve_context
+
+    checkpoints = [c for c in args.checkpoints.split(",") if c]
+    labels = args.labels.split(",") if args.labels else [Path(c).parent.name or c for c in checkpoints]
+    if len(labels) != len(checkpoints):
+        print("pssnet posterior: error: --labels must name every checkpoint", file=sys.stderr)
+        return 2
+    datasets = []
+    for item in args.data:
+        label, sep, path = item.partition("=")
+        if not sep or not label or not path:
+            print(f"pssnet posterior: error: --data wants LABEL=DIR[,DIR], got {item!r}", file=sys.stderr)
+            return 2
+        datasets.append((label, path))
+    try:
+        import torch
+
+        torch.set_num_threads(args.threads)
+        ctx = resolve_context("cpu", "auto")
+        readers = [(label, DatasetReader(path)) for label, path in datasets]
+        rows = []
+        for label, path in zip(labels, checkpoints, strict=True):
+            model, _, _ = load_checkpoint(path)
+            model.to_fast_layout()
+            rows.extend((label, posterior_stats(model, reader, name, ctx, args.max_views))
+                        for name, reader in readers)
+    except (CheckpointError, DatasetError, ValueError) as error:
+        print(f"pssnet posterior: error: {error}", file=sys.stderr)
+        return 2
+    table = format_table(rows)
+    print(table)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "posterior.txt").write_text(table + "\n")
+        (out / "posterior.json").write_text(json.dumps(stats_dict(rows), indent=1))
+        print(f"wrote {out / 'posterior.txt'} and posterior.json")
+    return 0
 
 
 def _interrupt(signum: int, frame: object) -> None:
