@@ -314,16 +314,14 @@ def run_handles(args: argparse.Namespace, completers: dict[str, Any]) -> dict[st
 
     from pssnet_core.data.store import DatasetReader
     from pssnet_core.evaluation.handles import (
-        HandleGeometry,
-        HandleMeasureError,
         handle_azimuths,
+        handle_geometries,
         handle_stats,
         plot_handle_samples,
         stats_row,
         summarise_handles,
     )
     from pssnet_core.evaluation.report import write_csv
-    from pssnet_core.shapes import ShapeId, make_shape
 
     if args.samples < 2:
         raise EvaluationCliError(f"--samples must be >= 2 to measure a spread, got {args.samples}")
@@ -335,15 +333,8 @@ def run_handles(args: argparse.Namespace, completers: dict[str, Any]) -> dict[st
     by_mug: dict[str, list[Any]] = {}
     for view in views:
         by_mug.setdefault(view.identity, []).append(view)
-    geometries = {}
-    for identity in by_mug:
-        sid = ShapeId.parse(identity)
-        try:
-            geometries[identity] = HandleGeometry.of(make_shape(sid.family, sid.seed))
-        except HandleMeasureError:
-            continue  # square bodies and handle-less mugs have no handle azimuth
-        if args.max_mugs is not None and len(geometries) >= args.max_mugs:
-            break
+    # Square bodies and handle-less mugs have no handle azimuth: skipped.
+    geometries = handle_geometries(by_mug, args.max_mugs)
     if not geometries:
         raise EvaluationCliError(f"{root} holds no round mug with a handle")
     chosen = [v for identity in geometries for v in by_mug[identity]]

@@ -18,7 +18,7 @@ the body, which says nothing about whether it proposes the hidden handle in diff
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -73,6 +73,49 @@ class HandleStats:
     azimuths_deg: tuple[float, ...]
 
 
+def handle_geometries(identities: Iterable[str], limit: int | None = None) -> dict[str, HandleGeometry]:
+    """:class:`HandleGeometry` of every measurable mug among ``identities`` (procedural "mug-<seed>" ids).
+
+    Square bodies, handle-less mugs and other families are skipped (they have no handle azimuth).
+
+    Args:
+        identities: object identities, in the order wanted (repeats are measured once).
+        limit: stop after this many measurable mugs (None = all).
+    """
+    from pssnet_core.shapes import ShapeError, ShapeId, make_shape  # only needed when meshes are rebuilt
+
+    out: dict[str, HandleGeometry] = {}
+    for identity in identities:
+        if identity in out:
+            continue
+        if limit is not None and len(out) >= limit:
+            break
+        try:
+            sid = ShapeId.parse(identity)
+        except ShapeError:
+            continue
+        if sid.family != "mug":
+            continue
+        try:
+            out[identity] = HandleGeometry.of(make_shape(sid.family, sid.seed))
+        except HandleMeasureError:
+            continue
+    return out
+
+
+def turned(camera_from_object: np.ndarray, azimuth_deg: float) -> np.ndarray:
+    """The mug's pose turned about its own vertical axis so that its handle lies at ``azimuth_deg``.
+
+    This is the azimuth :func:`handle_azimuths` measures: the mug frame's z is the body's axis (x = y = 0) and
+    the handle points along +x, so ``pose @ Rz(a)`` puts the handle at azimuth ``a`` of the original frame, at
+    the same place and height (the body is a surface of revolution, so only the handle moves).
+    """
+    a = math.radians(float(azimuth_deg))
+    rz = np.eye(4)
+    rz[:2, :2] = [[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]
+    return np.asarray(camera_from_object, dtype=np.float64) @ rz
+
+
 def handle_azimuths(samples: np.ndarray, grid_pose: Any, camera_from_object: np.ndarray,
                     geometry: HandleGeometry, min_voxels: int = MIN_HANDLE_VOXELS) -> np.ndarray:
     """Handle azimuth (degrees, true handle = 0) of each sample; NaN where a sample has no handle.
@@ -114,14 +157,26 @@ def circular_spread_deg(angles_deg: np.ndarray) -> float:
     return math.degrees(math.sqrt(-2.0 * math.log(max(r, 1e-12))))
 
 
+def circular_difference_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """|a - b| on the circle, in [0, 180] degrees (broadcasting)."""
+    d = np.abs(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)) % 360.0
+    return np.minimum(d, 360.0 - d)
+
+
+def azimuth_error_deg(azimuths_deg: np.ndarray, truth_deg: float = 0.0) -> float:
+    """Mean circular distance of the finite azimuths from the truth (NaN if there are none)."""
+    a = np.asarray(azimuths_deg, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    return float(circular_difference_deg(a, truth_deg).mean()) if len(a) else math.nan
+
+
 def handle_stats(samples: np.ndarray, view: EvalView, geometry: HandleGeometry) -> HandleStats:
     """:class:`HandleStats` of one view's samples."""
     az = handle_azimuths(samples, view.grid_pose, view.object_pose, geometry)
-    found = az[np.isfinite(az)]
     pair = chamfer_matrix(samples, samples, view.grid_pose.voxel_size)
     off_diagonal = pair[~np.eye(len(samples), dtype=bool)]
     return HandleStats(handle_rate=float(np.isfinite(az).mean()), spread_deg=circular_spread_deg(az),
-                       error_deg=float(np.abs(found).mean()) if len(found) else math.nan,
+                       error_deg=azimuth_error_deg(az),
                        pairwise_mm=float(off_diagonal.mean() * 1000) if len(off_diagonal) else 0.0,
                        azimuths_deg=tuple(float(x) for x in az))
 
