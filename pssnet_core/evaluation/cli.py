@@ -1,5 +1,7 @@
-"""``pssnet plausible`` (build/cache plausible sets), ``pssnet evaluate`` (the paper's table and figures) and
-``pssnet handles`` (where sampled mugs put a hidden or visible handle)."""
+"""``pssnet plausible`` (build/cache plausible sets), ``pssnet evaluate`` (the paper's table and figures),
+``pssnet handles`` (where sampled mugs put a hidden or visible handle), ``pssnet ambiguity`` (samples against
+what each view allows: plausible handle arcs, plausible box depths through a slit) and ``pssnet memorisation``
+(completions against the nearest training shape)."""
 
 from __future__ import annotations
 
@@ -59,7 +61,7 @@ def _add_plausible_options(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Adds ``plausible`` and ``evaluate`` to the ``pssnet`` command line."""
+    """Adds ``plausible``, ``evaluate``, ``handles``, ``ambiguity`` and ``memorisation`` to ``pssnet``."""
     p = subparsers.add_parser(
         "plausible", help="build (and cache) the plausible sets of the test sets (paper Alg. 2)",
         description="For every test observation, every other observation's ground truth aligned by ICP and kept "
@@ -106,6 +108,73 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     h.add_argument("--seed", type=int, default=0)
     h.add_argument("--no-progress", action="store_true")
     h.set_defaults(func=_guard(_handles_command))
+
+    a = subparsers.add_parser(
+        "ambiguity", help="do samples spread over what each view allows? (plausible handle arcs, slit box depths)",
+        description="Hidden-handle mugs: the azimuths where the same mug, handle turned there, passes the "
+                    "observation model (the plausible arc) against the sampled handles (arc coverage, precision, "
+                    "spread ratio, handle rate); visible handles: error to the truth. Boxes through the narrow "
+                    "slit: the plausible range of the hidden extent against the samples' extents. The plausible "
+                    "sets do not depend on the model and are cached in OUT/plausible_cache. Writes "
+                    "OUT/ambiguity.md, OUT/ambiguity.json, OUT/ambiguity_per_view.csv and OUT/handle_arcs.png, "
+                    "OUT/slit_extents.png, OUT/ambiguity_summary.png.")
+    a.add_argument("--models", default="pssnet", help="method names (checkpoint order)")
+    a.add_argument("--checkpoints", required=True,
+                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+    a.add_argument("--data", required=True, help="directory holding the test sets (mugs, ycb_narrow)")
+    a.add_argument("--samples", type=int, default=20, help="completions per view")
+    a.add_argument("--box-temperatures", type=_floats, default=(1.0,),
+                   help="box temperatures for models with a box part, e.g. 1,1.5,2,3 (others run at 1 only)")
+    a.add_argument("--max-views", type=int, default=None,
+                   help="at most K views of each kind (hidden handle, visible handle, slit box), evenly spaced")
+    a.add_argument("--deltas", type=_floats, default=(SCALED_DELTA, PAPER_DELTA),
+                   help="observation-model tolerances in metres, headline first (default 0.01,0.04)")
+    a.add_argument("--outlier-fraction", type=float, default=0.0,
+                   help="fraction of a view's object pixels allowed to exceed delta (paper: 0)")
+    a.add_argument("--outlier-count", type=int, default=0, help="violating pixels always allowed (paper: 0)")
+    a.add_argument("--azimuth-step", type=float, default=5.0, help="candidate handle azimuth step (deg)")
+    a.add_argument("--arc-tolerance", type=float, default=15.0, help="coverage tolerance of the arc (deg)")
+    a.add_argument("--arc-margin", type=float, default=10.0, help="precision margin of the arc (deg)")
+    a.add_argument("--extent-step", type=float, default=0.5, help="candidate box length step (voxels)")
+    a.add_argument("--extent-tolerance", type=float, default=1.0, help="coverage tolerance of extents (voxels)")
+    a.add_argument("--extent-margin", type=float, default=1.0, help="precision margin of extents (voxels)")
+    a.add_argument("--no-rerender", action="store_true",
+                   help="judge against the stored depth crop instead of the re-rendered whole image")
+    a.add_argument("--figure-views", type=int, default=4, help="hidden-handle views in the arc figure")
+    a.add_argument("--cache-dir", default=None, help="plausible-set cache (default OUT/plausible_cache)")
+    a.add_argument("--out", default="results/ambiguity", help="output directory")
+    a.add_argument("--device", default="cpu")
+    a.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    a.add_argument("--seed", type=int, default=0)
+    a.add_argument("--no-progress", action="store_true")
+    a.set_defaults(func=_guard(_ambiguity_command))
+
+    m = subparsers.add_parser(
+        "memorisation", help="distance of each completion to the nearest training shape and to the truth",
+        description="The paper's appendix question: for every completion of the test views, the chamfer distance "
+                    "(mm) to the nearest training ground truth (prefilter on block-averaged occupancy, exact "
+                    "chamfer on the top-k) and to the view's truth. Writes OUT/memorisation.md, "
+                    "OUT/memorisation.json, OUT/memorisation_per_completion.csv, OUT/memorisation_scatter.png "
+                    "and OUT/memorisation_examples.png.")
+    m.add_argument("--models", default="pssnet", help="method names (checkpoint order)")
+    m.add_argument("--checkpoints", required=True,
+                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+    m.add_argument("--train-data", required=True,
+                   help="training datasets, comma separated; each a dataset or a folder of them (data/d32/train)")
+    m.add_argument("--data", required=True, help="directory holding the test sets")
+    m.add_argument("--sets", default=",".join(TEST_SETS), help=f"test sets (default {','.join(TEST_SETS)})")
+    m.add_argument("--samples", type=int, default=10, help="completions per view")
+    m.add_argument("--max-views", type=int, default=None, help="at most K views per test set, evenly spaced")
+    m.add_argument("--top-k", type=int, default=16, help="exact chamfer on this many prefilter candidates")
+    m.add_argument("--pool", type=int, default=None, help="prefilter block size in voxels (default grid / 8)")
+    m.add_argument("--verify", type=int, default=0,
+                   help="re-search this many completions by brute force over the whole training set")
+    m.add_argument("--out", default="results/memorisation", help="output directory")
+    m.add_argument("--device", default="cpu")
+    m.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--no-progress", action="store_true")
+    m.set_defaults(func=_guard(_memorisation_command))
 
 
 def _guard(handler):
@@ -390,5 +459,59 @@ def _handles_command(args: argparse.Namespace) -> int:
         raise EvaluationCliError("--models is empty")
     files = run_handles(args, load_completers(models, args.checkpoints, args.device, args.threads))
     print((Path(args.out) / "handles.md").read_text())
+    print("wrote " + ", ".join(str(p) for p in files.values()))
+    return 0
+
+
+def _models(text: str) -> list[str]:
+    models = [m.strip() for m in text.split(",") if m.strip()]
+    if not models:
+        raise EvaluationCliError("--models is empty")
+    return models
+
+
+def ambiguity_run(args: argparse.Namespace) -> Any:
+    """The :class:`~pssnet_core.evaluation.ambiguity.AmbiguityRun` of ``pssnet ambiguity``'s arguments."""
+    from pssnet_core.evaluation.ambiguity import AmbiguityConfig, AmbiguityRun
+
+    config = AmbiguityConfig(
+        deltas=tuple(args.deltas),
+        observation=ObservationModelConfig(outlier_fraction=args.outlier_fraction, outlier_count=args.outlier_count),
+        azimuth_step_deg=args.azimuth_step, arc_tolerance_deg=args.arc_tolerance, arc_margin_deg=args.arc_margin,
+        extent_step_voxels=args.extent_step, extent_tolerance_voxels=args.extent_tolerance,
+        extent_margin_voxels=args.extent_margin, rerender=not args.no_rerender)
+    return AmbiguityRun(data=args.data, out=args.out, samples=args.samples,
+                        box_temperatures=tuple(args.box_temperatures), max_views=args.max_views, seed=args.seed,
+                        progress=not args.no_progress, figure_views=args.figure_views, cache_dir=args.cache_dir,
+                        config=config)
+
+
+def _ambiguity_command(args: argparse.Namespace) -> int:
+    from pssnet_core.evaluation.ambiguity import run_ambiguity
+
+    run = ambiguity_run(args)  # parameters checked before the models load
+    files = run_ambiguity(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads))
+    print(files["markdown"].read_text())
+    print("wrote " + ", ".join(str(p) for p in files.values()))
+    return 0
+
+
+def memorisation_run(args: argparse.Namespace) -> Any:
+    """The :class:`~pssnet_core.evaluation.memorisation.MemorisationRun` of ``pssnet memorisation``'s arguments."""
+    from pssnet_core.evaluation.memorisation import MemorisationConfig, MemorisationRun
+
+    return MemorisationRun(train_data=[p.strip() for p in args.train_data.split(",") if p.strip()], data=args.data,
+                           out=args.out, sets=tuple(_set_names(args.sets)), samples=args.samples,
+                           max_views=args.max_views, seed=args.seed, verify=args.verify,
+                           progress=not args.no_progress,
+                           config=MemorisationConfig(pool=args.pool, top_k=args.top_k))
+
+
+def _memorisation_command(args: argparse.Namespace) -> int:
+    from pssnet_core.evaluation.memorisation import run_memorisation
+
+    run = memorisation_run(args)
+    files = run_memorisation(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads))
+    print(files["markdown"].read_text())
     print("wrote " + ", ".join(str(p) for p in files.values()))
     return 0
