@@ -751,12 +751,12 @@ def run_ambiguity(run: AmbiguityRun, completers: Mapping[str, Any]) -> dict[str,
     out.mkdir(parents=True, exist_ok=True)
     files = {"markdown": out / "ambiguity.md", "json": out / "ambiguity.json"}
     files["markdown"].write_text(markdown_ambiguity(summary, run, costs, arcs, ranges))
-    files["json"].write_text(json.dumps({
+    files["json"].write_text(json.dumps(_plain({
         "run": {k: v for k, v in asdict(run).items() if k != "config"}, "config": asdict(run.config),
         "summary": summary, "costs": costs, "rows": rows,
         "plausible": {"handle_arcs": {str(k): a.to_json() for k, a in arcs.items()},
                       "slit_ranges": {str(k): r.to_json() for k, r in ranges.items()}},
-    }, indent=1, default=_json_default))
+    }), indent=1, allow_nan=False))
     from pssnet_core.evaluation.report import write_csv
 
     files["csv"] = write_csv(out / "ambiguity_per_view.csv",
@@ -772,12 +772,19 @@ def run_ambiguity(run: AmbiguityRun, completers: Mapping[str, Any]) -> dict[str,
     return files
 
 
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
+def _plain(value: Any) -> Any:
+    """JSON-ready copy: numpy values as Python ones, NaN/inf as null (standard JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _arc_rows(base: dict[str, Any], arc: HandleArc, azimuths: np.ndarray, config: AmbiguityConfig) -> list[dict]:

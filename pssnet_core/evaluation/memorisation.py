@@ -11,14 +11,27 @@ reproduces a training *example* as the network saw it, pose included, which is w
 output.
 
 Search (why a prefilter): training sets are large (the large set: 160,000 views at 32^3), and an exact chamfer
-needs a distance transform per training grid (~1 ms) and a pass over its voxels; all completions against all
+needs a distance transform per training grid (~2 ms) and a pass over its voxels; all completions against all
 training grids would be hours. So the training grids are read once into a compact index (bit-packed grids, 4 KB
-each at 32^3, plus block-averaged occupancy features, ``pool`` voxels a side: 512 numbers at 32^3), every
-completion is compared with every training grid by the squared distance between features (one matrix product per
-chunk), and the exact chamfer is computed on the ``top_k`` nearest by features only. Block averages keep where the
-mass of a shape is at a coarse scale, which is what a chamfer distance mostly measures between similar shapes;
-they are a heuristic, not a bound, so the tests check on a small set that the prefilter's choice is the exact
-nearest, and ``verify`` re-checks a few completions against the whole training set by brute force.
+each at 32^3, plus prefilter features: 16^3 float16 numbers, 8 KB), every completion is compared with every
+training grid by the squared distance between features (one matrix product per chunk), and the exact chamfer is
+computed on the ``top_k`` nearest by features only. Memory: ~12 KB per training grid at 32^3 (2 GB for the
+160,000-view set); at 64^3 the packed grids take 32 KB each.
+
+The features (:func:`pooled_features`) are the shape's occupancy as a *mass distribution* (divided by its voxel
+count), averaged over blocks of ``pool`` voxels a side (default: a 16^3 grid of blocks) and blurred by a voxel:
+a chamfer distance averages over points, so two shapes are near when their mass lies in the same places,
+whatever their sizes; the blur makes near-but-not-overlapping mass count as near. Measured:
+
+- on 300 varied synthetic shapes with 60 queries (``test_prefilter_finds_the_exact_nearest_on_a_small_set``):
+  raw block averages ranked the exact nearest beyond the top 32 for 5 of 30 unseen shapes (the size of the
+  other shape dominates when the two do not overlap); normalised and blurred, all 60 within the top 3;
+- on 36 completions of the shipped model (4 per view, 9 test views) against the 15,840 training grids of
+  ``data/d32/train`` (brute force: 213 s): 8^3 blocks found the exact nearest in the top 16 for 28 of 36
+  (worst rank 427); 16^3 blocks for 36 of 36 (worst rank 11).
+
+It is a heuristic, not a bound, so ``verify`` re-checks completions against the whole training set by brute
+force and the report says how often the prefilter found the exact nearest.
 """
 
 from __future__ import annotations
@@ -32,6 +45,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from pssnet_core.evaluation.metrics import chamfer_matrix, distance_fields
 
@@ -45,33 +59,44 @@ class MemorisationConfig:
     """Parameters of the nearest-training-shape search.
 
     Attributes:
-        pool: block size (voxels) of the prefilter features; None = grid size / 8 (8^3 features).
+        pool: block size (voxels) of the prefilter features; None = grid size / 16 (16^3 features).
+        blur: Gaussian blur of the features, sigma in voxels (0 = none).
         top_k: exact chamfer distances per completion (the prefilter's nearest candidates).
-        chunk: training grids per matrix product of the prefilter (bounds memory).
+        chunk: training grids per matrix product of the prefilter (bounds memory: chunk x features x 4 bytes).
         query_chunk: completions searched together, each against the union of their candidates (best about
             one or two views' samples, which share candidates).
     """
 
     pool: int | None = None
+    blur: float = 1.0
     top_k: int = 16
-    chunk: int = 32768
+    chunk: int = 8192
     query_chunk: int = 20
 
     def __post_init__(self) -> None:
         if self.pool is not None and self.pool < 1:
             raise MemorisationError(f"pool must be >= 1, got {self.pool}")
+        if self.blur < 0:
+            raise MemorisationError(f"blur must be >= 0, got {self.blur}")
         if self.top_k < 1 or self.chunk < 1 or self.query_chunk < 1:
             raise MemorisationError("top_k, chunk and query_chunk must be >= 1")
 
     def pool_for(self, grid_size: int) -> int:
-        pool = self.pool if self.pool is not None else max(1, grid_size // 8)
+        pool = self.pool if self.pool is not None else max(1, grid_size // 16)
         if grid_size % pool:
             raise MemorisationError(f"pool {pool} does not divide the grid size {grid_size}")
         return pool
 
 
-def pooled_features(grids: np.ndarray, pool: int) -> np.ndarray:
-    """Block-averaged occupancy, (K, (N / pool)^3) float32: the prefilter's view of a shape."""
+def pooled_features(grids: np.ndarray, pool: int, normalise: bool = True, blur: float = 1.0) -> np.ndarray:
+    """The prefilter's view of a shape, (K, (N / pool)^3) float32 (see the module docstring).
+
+    Args:
+        grids: (K, N, N, N) or (N, N, N) occupancy.
+        pool: block size in voxels (must divide N).
+        normalise: divide by the voxel count (a mass distribution; empty grids give zeros).
+        blur: Gaussian blur of the block grid, sigma in voxels (0 = none).
+    """
     grids = np.asarray(grids)
     if grids.ndim == 3:
         grids = grids[None]
@@ -79,8 +104,13 @@ def pooled_features(grids: np.ndarray, pool: int) -> np.ndarray:
     if n % pool:
         raise MemorisationError(f"pool {pool} does not divide the grid size {n}")
     m = n // pool
-    blocks = grids.reshape(k, m, pool, m, pool, m, pool).astype(np.float32)
-    return blocks.mean(axis=(2, 4, 6)).reshape(k, m**3)
+    blocks = grids.reshape(k, m, pool, m, pool, m, pool).astype(np.float32).mean(axis=(2, 4, 6))
+    if normalise:
+        blocks /= np.maximum(blocks.reshape(k, -1).sum(axis=1), 1e-12)[:, None, None, None]
+    if blur > 0:
+        sigma = blur / pool
+        blocks = ndimage.gaussian_filter(blocks, sigma=(0, sigma, sigma, sigma), mode="constant")
+    return blocks.reshape(k, m**3).astype(np.float32, copy=False)
 
 
 @dataclass
@@ -91,8 +121,9 @@ class TrainingIndex:
         grid_size: N.
         voxel_size: metres.
         pool: feature block size.
+        blur: feature blur (voxels).
         packed: (M, ceil(N^3 / 8)) uint8 bit-packed occupancy.
-        features: (M, F) float32 pooled occupancy.
+        features: (M, F) float16 prefilter features (half the memory; scores are computed in float32).
         norms: (M,) float32 squared feature norms.
         identities: (M,) object identity of each grid.
         families: (M,) object family of each grid.
@@ -102,6 +133,7 @@ class TrainingIndex:
     grid_size: int
     voxel_size: float
     pool: int
+    blur: float
     packed: np.ndarray
     features: np.ndarray
     norms: np.ndarray
@@ -120,12 +152,12 @@ class TrainingIndex:
         grids = np.asarray(grids, dtype=bool)
         n = grids.shape[1]
         pool = config.pool_for(n)
-        features = pooled_features(grids, pool)
+        features = pooled_features(grids, pool, blur=config.blur).astype(np.float16)
         ids = list(identities) if identities is not None else [str(k) for k in range(len(grids))]
         fams = list(families) if families is not None else [""] * len(grids)
-        return cls(grid_size=n, voxel_size=float(voxel_size), pool=pool,
+        return cls(grid_size=n, voxel_size=float(voxel_size), pool=pool, blur=config.blur,
                    packed=np.packbits(grids.reshape(len(grids), -1), axis=1), features=features,
-                   norms=(features**2).sum(axis=1), identities=ids, families=fams)
+                   norms=_squared_norms(features), identities=ids, families=fams)
 
     @classmethod
     def from_reader(cls, reader: Any, config: MemorisationConfig | None = None,
@@ -142,12 +174,13 @@ class TrainingIndex:
                           disable=not progress, dynamic_ncols=True):
             grids = reader.load_shard(shard, keys=["occupancy"])["occupancy"]
             packed.append(np.packbits(grids.reshape(len(grids), -1), axis=1))
-            features.append(pooled_features(grids, pool))
+            features.append(pooled_features(grids, pool, blur=config.blur).astype(np.float16))
         if not packed:
             raise MemorisationError("the training set holds no grids")
         feats = np.concatenate(features)
-        return cls(grid_size=n, voxel_size=float(reader.voxel_size), pool=pool, packed=np.concatenate(packed),
-                   features=feats, norms=(feats**2).sum(axis=1),
+        return cls(grid_size=n, voxel_size=float(reader.voxel_size), pool=pool, blur=config.blur,
+                   packed=np.concatenate(packed),
+                   features=feats, norms=_squared_norms(feats),
                    identities=[str(r.get("identity", "")) for r in reader.records],
                    families=[str(r.get("family", "")) for r in reader.records], seconds=time.perf_counter() - t0)
 
@@ -165,14 +198,15 @@ class TrainingIndex:
             top_k: candidates per query (at most the index size).
             chunk: training grids per matrix product.
         """
-        q = pooled_features(np.asarray(queries, dtype=bool), self.pool)
+        q = pooled_features(np.asarray(queries, dtype=bool), self.pool, blur=self.blur)
         q_norm = (q**2).sum(axis=1)
         k = min(top_k, len(self))
         best_score = np.full((len(q), 0), np.inf, dtype=np.float32)
         best_index = np.zeros((len(q), 0), dtype=np.int64)
         for start in range(0, len(self), chunk):
             stop = min(start + chunk, len(self))
-            score = q_norm[:, None] + self.norms[None, start:stop] - 2.0 * (q @ self.features[start:stop].T)
+            block = self.features[start:stop].astype(np.float32)
+            score = q_norm[:, None] + self.norms[None, start:stop] - 2.0 * (q @ block.T)
             score = np.concatenate([best_score, score.astype(np.float32)], axis=1)
             index = np.concatenate([best_index, np.broadcast_to(np.arange(start, stop), (len(q), stop - start))],
                                    axis=1)
@@ -182,6 +216,10 @@ class TrainingIndex:
             best_index = np.take_along_axis(index, keep, axis=1)
         order = np.argsort(best_score, axis=1, kind="stable")
         return np.take_along_axis(best_index, order, axis=1)
+
+
+def _squared_norms(features: np.ndarray) -> np.ndarray:
+    return (features.astype(np.float32) ** 2).sum(axis=1)
 
 
 def nearest_training(queries: np.ndarray, index: TrainingIndex, config: MemorisationConfig | None = None,
@@ -205,6 +243,8 @@ def nearest_training(queries: np.ndarray, index: TrainingIndex, config: Memorisa
         raise MemorisationError(f"queries must be (Q, {index.grid_size}, ...) grids, got {queries.shape}")
     distance = np.full(len(queries), np.inf)
     nearest = np.full(len(queries), -1, dtype=np.int64)
+    # One pass over the training features for all queries (the features are the big array).
+    candidates = index.candidates(queries, config.top_k, config.chunk)
     starts = range(0, len(queries), config.query_chunk)
     for start in tqdm(starts, desc="nearest training shape", unit="chunk", disable=not progress,
                       dynamic_ncols=True):
@@ -212,7 +252,7 @@ def nearest_training(queries: np.ndarray, index: TrainingIndex, config: Memorisa
         # Completions of one view share most candidates: the chunk is scored against the union of its
         # candidates in one chamfer matrix (each training grid's distance field made once). Every query thus
         # sees at least its own top-k, so the union can only bring it nearer the exact nearest.
-        unique = np.unique(index.candidates(chunk, config.top_k, config.chunk))
+        unique = np.unique(candidates[start:start + config.query_chunk])
         grids = index.grids(unique)
         d = chamfer_matrix(chunk, grids, index.voxel_size, fields_a=distance_fields(chunk),
                            fields_b=distance_fields(grids))
