@@ -845,7 +845,8 @@ SUMMARY_KEYS: tuple[tuple[str, str, str], ...] = (
 
 def summarise_ambiguity(rows: Sequence[dict[str, Any]], runs: Sequence[tuple[str, float]],
                         deltas: Sequence[float]) -> list[dict[str, Any]]:
-    """Means over views per (method, box temperature, delta) (NaN-aware; visible-handle rows at every delta)."""
+    """Means over views per (method, box temperature, delta) (NaN-aware; visible-handle rows at every delta),
+    plus the medians of the spread ratios."""
     out = []
     for name, temperature in runs:
         for delta in deltas:
@@ -857,6 +858,13 @@ def summarise_ambiguity(rows: Sequence[dict[str, Any]], runs: Sequence[tuple[str
                     entry[key] = len(chosen)
                 else:
                     entry[key] = _nanmean([float(r[column]) for r in chosen])
+            # A view whose plausible set is narrow makes its spread ratio large: the medians show how much the
+            # means owe to a few such views.
+            for key, kind in (("arc_spread_ratio_median", "hidden_handle"), ("slit_spread_ratio_median", "slit")):
+                values = np.array([r["spread_ratio"] for r in rows if r["method"] == name
+                                   and r["box_temperature"] == temperature and r["kind"] == kind
+                                   and abs(r["delta"] - delta) < 1e-12], dtype=np.float64)
+                entry[key] = float(np.nanmedian(values)) if np.isfinite(values).any() else math.nan
             out.append(entry)
     return out
 
