@@ -134,8 +134,9 @@ def test_a_planted_training_shape_is_found(tiny_data, tmp_path):
         if row["sample"] == "0":  # the planted training grid
             assert float(row["train_mm"]) == 0.0 and row["nearer_training"] == "True"
             assert row["train_identity"] == planted["identity"]
-        else:  # the truth: a test object, never a training one
+        else:  # the truth: a test object, never a training one; its distance is the truth's baseline
             assert float(row["truth_mm"]) == 0.0 and float(row["train_mm"]) > 0 and row["nearer_training"] == "False"
+            assert float(row["train_mm"]) == pytest.approx(float(row["truth_train_mm"]))
     result = json.loads(files["json"].read_text())
     overall = next(e for e in result["summary"] if e["set"] == "all")
     assert overall["nearer_training_fraction"] == 0.5 and overall["completions"] == 6
