@@ -212,7 +212,7 @@ def test_command_scores_spread_and_agreeing_samples(tiny_sets, hidden_view, tmp_
     completers = {"agree": TurningCompleter(tiny_sets, lambda s: None if s["family"] != "mug" else [0.0]),
                   "spread": BoxCompleter(tiny_sets, spread)}
     run = AmbiguityRun(data=str(tiny_sets), out=str(tmp_path / "out"), samples=len(picks),
-                       box_temperatures=(1.0, 2.0), progress=False)
+                       box_temperatures=(1.0, 2.0), max_views=2, progress=False)
     files = run_ambiguity(run, completers)
     result = json.loads(files["json"].read_text())
     summary = {(e["method"], e["box_temperature"], e["delta_m"]): e for e in result["summary"]}
