@@ -575,11 +575,12 @@ def supports_box_temperature(completer: Any) -> bool:
 
 
 def _sample(completer: Any, view: EvalView, samples: int, seed: int, temperature: float) -> np.ndarray:
-    # Temperature 1.0 is the trained posterior: called without the argument, which every completer accepts.
-    if temperature == 1.0:
-        result = completer.complete(view, num_samples=samples, seed=seed)
-    else:
+    # Models with a box part get the temperature explicitly (a completer may carry another default); the others
+    # run at 1.0 only and are called without it.
+    if supports_box_temperature(completer):
         result = completer.complete(view, num_samples=samples, seed=seed, box_temperature=temperature)
+    else:
+        result = completer.complete(view, num_samples=samples, seed=seed)
     return np.asarray(result.occupancy, dtype=bool)
 
 
