@@ -66,6 +66,7 @@ is at or below everything seen, and lower still where the completions say the hi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -590,7 +591,8 @@ def _run_through(slices: np.ndarray, centre: int) -> tuple[np.ndarray, np.ndarra
 
 def generate_candidates(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
                         config: GraspConfig | None = None, support_z: float | None = None,
-                        known_occupied: np.ndarray | None = None) -> GraspCandidates:
+                        known_occupied: np.ndarray | None = None,
+                        allowed: Callable[[GraspCandidates], np.ndarray] | None = None) -> GraspCandidates:
     """Grasp candidates from the completions (and the observed points); see the module docstring.
 
     Args:
@@ -600,6 +602,8 @@ def generate_candidates(occupancy: np.ndarray, pose: GridPose, points: np.ndarra
         config: options (default :class:`GraspConfig`).
         support_z: support-plane height in grid voxels; None = :func:`estimate_support_height`.
         known_occupied: (N, N, N) observed voxels, for the support plane when ``points`` is None.
+        allowed: candidates (grid coordinates, final widths) -> (K,) bool, the ones the surroundings allow
+            (e.g. approaches clear of known clutter); applied before the ``max_candidates`` subset.
 
     Returns:
         At most ``config.max_candidates`` candidates in grid coordinates, in a deterministic order.
@@ -668,6 +672,9 @@ def generate_candidates(occupancy: np.ndarray, pose: GridPose, points: np.ndarra
     ok &= widths <= wmax + 1e-9
     origins = origins + (0.5 * (ys[lo_u] + ys[hi_u]))[:, None] * rot[:, :, 1]
     origins, rot, widths, orient_id = origins[ok], rot[ok], widths[ok], orient_id[ok]
+    if allowed is not None:
+        keep = np.asarray(allowed(GraspCandidates(origins, rot, widths, kinds_all[orient_id])), dtype=bool)
+        origins, rot, widths, orient_id = origins[keep], rot[keep], widths[keep], orient_id[keep]
 
     # 3. Drop near-duplicates (same orientation, origin within half a voxel), keep a seeded subset.
     key = np.concatenate([orient_id[:, None], np.round(origins * 2.0).astype(np.int64)], axis=1)
@@ -811,7 +818,8 @@ def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.
 
 def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
                 config: GraspConfig | None = None, known_occupied: np.ndarray | None = None,
-                support_z: float | None = None) -> GraspSet:
+                support_z: float | None = None,
+                allowed: Callable[[GraspCandidates], np.ndarray] | None = None) -> GraspSet:
     """Completions in, grasps ranked by the fraction of completions they hold for out.
 
     Args:
@@ -821,6 +829,7 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
         config: gripper, candidate and scoring options (default :class:`GraspConfig`).
         known_occupied: (N, N, N) observed voxels; places the support plane when ``points`` is None.
         support_z: support-plane height in grid voxels; None = :func:`estimate_support_height`.
+        allowed: restricts the candidates (see :func:`generate_candidates`).
 
     Returns:
         The scored candidates, best first (possibly empty when no completion has any voxel the gripper fits).
@@ -833,7 +842,7 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
     points = _check_points(points)
     if support_z is None:
         support_z = estimate_support_height(occupancy, pose, points, known_occupied)
-    candidates = generate_candidates(occupancy, pose, points, config, support_z)
+    candidates = generate_candidates(occupancy, pose, points, config, support_z, allowed=allowed)
     holds, secondary = score_grasps(candidates, occupancy, pose, support_z, config)
     return _to_grasp_set(candidates, holds, secondary, pose, support_z)
 
