@@ -6,7 +6,7 @@ Interface (node name ``pssnet``; relative names are remappable):
   synchronised by stamp within ``sync_tolerance``; best-effort QoS, so reliable and sensor-data publishers
   both connect.
 - serves ``~/sample_completions`` (pssnet_interfaces/srv/SampleCompletions) -> /pssnet/sample_completions,
-  and ``~/get_stats`` (std_srvs/Trigger: counters as JSON).
+  and ``~/get_stats`` (std_srvs/Trigger: counters as JSON, see :meth:`CompletionNode.stats`).
 - publishes in continuous mode ``~/completions`` (PointCloud2 x, y, z + ``sample``), ``~/known_occupied``,
   ``~/grasps`` (PoseArray, best first), ``~/grasp_candidates`` (pssnet_interfaces/msg/GraspCandidates).
 
@@ -24,7 +24,6 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseArray
 from pssnet_interfaces.msg import GraspCandidates
@@ -43,6 +42,7 @@ from std_srvs.srv import Trigger
 
 from pssnet_core.pipeline import CompletionPipeline, PipelineResult
 from pssnet_ros import conversions
+from pssnet_ros.newest_slot import NewestSlot
 from pssnet_ros.params import PARAMETERS, check_values, markdown_table, pipeline_config
 from pssnet_ros.sync import StampSynchronizer, SyncedSet
 
@@ -81,12 +81,15 @@ class CompletionNode(Node):
         except StartupError:
             self.destroy_node()
             raise
+        # Guards the counters, the latest set and the slot's put/done, so that stats() is one consistent snapshot.
         self._lock = threading.Lock()
-        self._counters = {"sets_synchronised": 0, "sets_processed": 0, "sets_dropped_superseded": 0,
-                          "sets_dropped_stale": 0, "sets_dropped_invalid": 0, "service_calls": 0,
-                          "service_failures": 0}
+        self._counters = {"sets_synchronised": 0, "sets_processed": 0, "sets_dropped_stale": 0,
+                          "sets_dropped_invalid": 0, "service_calls": 0, "service_failures": 0}
         self._latest: SyncedSet | None = None  # newest synchronised set (the service's default input)
-        self._pending: SyncedSet | None = None  # newest set not yet completed in continuous mode
+        # Continuous mode: the worker completes the newest pending set at most max_rate_hz; a newer set replaces
+        # an unprocessed one (one slot: bounded memory, no queue).
+        self._slot: NewestSlot[SyncedSet] = NewestSlot(self._values["max_rate_hz"],
+                                                       paused=not self._values["continuous"])
         self._sync = StampSynchronizer(STREAMS, self._values["sync_tolerance"], queue_size=10)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -107,10 +110,6 @@ class CompletionNode(Node):
         self._pub_grasps = self.create_publisher(PoseArray, "~/grasps", OUTPUT_QOS)
         self._pub_candidates = self.create_publisher(GraspCandidates, "~/grasp_candidates", OUTPUT_QOS)
 
-        # Continuous mode: a worker completes the newest pending set at most max_rate_hz; a newer set simply
-        # replaces an unprocessed one (one slot: bounded memory, no queue).
-        self._wake = threading.Condition(self._lock)
-        self._stopping = False
         self._worker = threading.Thread(target=self._continuous_loop, name="pssnet_continuous", daemon=True)
         self._worker.start()
 
@@ -173,8 +172,8 @@ class CompletionNode(Node):
         self.pipeline.config = pipeline_config(self._values)
         if any(p.name == "sync_tolerance" for p in params):
             self._sync.tolerance_s = self._values["sync_tolerance"]
-        with self._wake:
-            self._wake.notify_all()
+        self._slot.max_rate_hz = self._values["max_rate_hz"]
+        self._slot.paused = not self._values["continuous"]
 
     # ------------------------------------------------------------------------------------------ topics
     def _count(self, key: str, n: int = 1) -> int:
@@ -186,57 +185,49 @@ class CompletionNode(Node):
         synced = self._sync.add(stream, stamp_ns(msg.header), msg)
         if synced is None:
             return
-        with self._wake:
+        with self._lock:
             self._counters["sets_synchronised"] += 1
             self._latest = synced
             if self._values["continuous"]:
-                if self._pending is not None:
-                    self._counters["sets_dropped_superseded"] += 1
-                self._pending = synced
-                self._wake.notify_all()
+                self._slot.put(synced)
 
     def _age_s(self, synced: SyncedSet) -> float:
         return (self.get_clock().now().nanoseconds - synced.stamp_ns) * 1e-9
 
     def _continuous_loop(self) -> None:
-        last_start = -np.inf
-        while True:
-            with self._wake:
-                while not self._stopping and (self._pending is None or not self._values["continuous"]):
-                    self._wake.wait(timeout=1.0)
-                if self._stopping:
-                    return
-                wait = last_start + 1.0 / self._values["max_rate_hz"] - time.monotonic()
-                if wait > 0:  # rate limit; a newer set may replace the pending one meanwhile
-                    self._wake.wait(timeout=wait)
-                    continue
-                synced, self._pending = self._pending, None
-            last_start = time.monotonic()
+        while (synced := self._slot.take()) is not None:
             self._complete_topic_set(synced)
+
+    def _finish(self, outcome: str) -> int:
+        """Counts the outcome of the set in progress and frees the slot in one step (stats stay consistent)."""
+        with self._lock:
+            self._counters[outcome] += 1
+            self._slot.done()
+            return self._counters[outcome]
 
     def _complete_topic_set(self, synced: SyncedSet) -> None:
         max_age = self._values["max_input_age"]
         age = self._age_s(synced)
         if max_age > 0 and age > max_age:
-            count = self._count("sets_dropped_stale")
+            count = self._finish("sets_dropped_stale")
             self.get_logger().warning(f"dropped a stale input set ({count} so far): {age:.2f} s old, "
                                       f"max_input_age {max_age} s", throttle_duration_sec=WARN_THROTTLE_S)
             return
         try:
             result, header = self._run(synced.messages["depth"], synced.messages["mask"],
                                        synced.messages["camera_info"], 0, self._values["continuous_grasps"])
+            self._publish(result, header)
         except ValueError as error:
-            count = self._count("sets_dropped_invalid")
+            count = self._finish("sets_dropped_invalid")
             self.get_logger().warning(f"dropped an input set ({count} so far): {error}",
                                       throttle_duration_sec=WARN_THROTTLE_S)
             return
         except Exception as error:  # never let one bad set kill the worker
-            count = self._count("sets_dropped_invalid")
+            count = self._finish("sets_dropped_invalid")
             self.get_logger().error(f"completion failed ({count} dropped so far): {type(error).__name__}: {error}\n"
                                     f"{traceback.format_exc()}", throttle_duration_sec=WARN_THROTTLE_S)
             return
-        self._publish(result, header)
-        self._count("sets_processed")
+        self._finish("sets_processed")
 
     def _publish(self, result: PipelineResult, header: Header) -> None:
         points, index = result.merged()
@@ -327,18 +318,28 @@ class CompletionNode(Node):
         return response
 
     def stats(self) -> dict[str, int]:
-        """Counters: synchronised/processed/dropped sets, service calls and failures, unmatched messages."""
+        """Counters, one consistent snapshot.
+
+        ``sets_synchronised`` (all synchronised sets), ``sets_processed`` (completed and published in continuous
+        mode), ``sets_dropped_superseded`` / ``_stale`` / ``_invalid``, ``sets_pending`` and ``sets_in_progress``
+        (0 or 1 each), ``service_calls``, ``service_failures``, ``messages_received``, ``messages_unmatched``,
+        and ``latest_set_stamp_ns`` (stamp of the newest synchronised set, 0 before the first). While continuous
+        mode is on, every synchronised set is accounted for: synchronised = processed + superseded + stale +
+        invalid + pending + in_progress.
+        """
         with self._lock:
             stats = dict(self._counters)
+            slot = self._slot.stats()
+            stats.update(sets_dropped_superseded=slot.superseded, sets_pending=slot.pending,
+                         sets_in_progress=slot.in_progress,
+                         latest_set_stamp_ns=self._latest.stamp_ns if self._latest is not None else 0)
         sync = self._sync.stats
         stats.update(messages_received=sync.received, messages_unmatched=sync.dropped_unmatched)
         return stats
 
     def destroy_node(self) -> None:
         if hasattr(self, "_worker"):
-            with self._wake:
-                self._stopping = True
-                self._wake.notify_all()
+            self._slot.close()
             if self._worker.is_alive() and self._worker is not threading.current_thread():
                 self._worker.join(timeout=10.0)
         super().destroy_node()
