@@ -15,13 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from pssnet_ros.processes import RosProcess, configure_this_process, ros_env, stale_shm_files
+from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_ros.processes import RosProcess, free_domain_id, ros_env, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
 
@@ -39,25 +39,19 @@ def main() -> int:
     parser.add_argument("--input-hz", type=float, default=30.0)
     parser.add_argument("--max-rate", type=float, default=30.0, help="node max_rate_hz in the topic-rate run")
     parser.add_argument("--threads", type=int, default=2, help="node torch threads")
-    parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the pid)")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS_DOMAIN_ID (default: one no DDS participant on this machine uses)")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     if args.domain_id is None:
-        args.domain_id = 10 + os.getpid() % 90
+        args.domain_id = free_domain_id(10 + os.getpid() % 90)
 
-    import rclpy
     from pssnet_interfaces.srv import SampleCompletions
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import CameraInfo, Image, PointCloud2
-    from std_srvs.srv import Trigger
 
     from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image
 
-    configure_this_process(args.domain_id)
     view = render_scene(SceneOptions())
     up = "[" + ",".join(repr(float(v)) for v in view.up) + "]"
     node = RosProcess.python_module(
@@ -66,102 +60,75 @@ def main() -> int:
          "-p", "max_input_age:=0.0"] + (["-p", f"model_path:={args.model}"] if args.model else []),
         ros_env(args.domain_id), name="node")
     results: dict[str, object] = {}
-    context = rclpy.Context()
     try:
         model_line = node.wait_for(r"model .*", timeout=180).group(0)
         node.wait_for(r"ready: serving", timeout=180)
-        rclpy.init(context=context, domain_id=args.domain_id, signal_handler_options=SignalHandlerOptions.NO)
-        client_node = rclpy.create_node("bench_client", context=context)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(client_node)
-        spinner = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.05)
-                                                   for _ in iter(context.ok, False)], daemon=True)
-        spinner.start()
+        with RosClient(args.domain_id, "bench_client") as ros:
+            service = ros.service(SampleCompletions, SAMPLE_SERVICE)
+            header_depth = numpy_to_image(view.depth, "32FC1")
+            mask = numpy_to_image(view.mask, "mono8")
+            info = intrinsics_to_camera_info(view.intrinsics)
+            for msg in (header_depth, mask, info):
+                msg.header.frame_id = "camera_depth_optical_frame"
+            print(f"[bench] {model_line}")
+            for grasps in (False, True):
+                request = SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
+                                                    num_samples=args.samples, compute_grasps=grasps)
+                for _ in range(5):  # warm-up
+                    response = ros.call(service, request)
+                    assert response.success, response.message
+                latencies = []
+                for _ in range(args.calls):
+                    t0 = time.perf_counter()
+                    response = ros.call(service, request)
+                    latencies.append(time.perf_counter() - t0)
+                    assert response.success, response.message
+                points = sum(c.width for c in response.completions)
+                key = "service_with_grasps" if grasps else "service"
+                results[key] = {"p50_ms": float(np.percentile(latencies, 50) * 1000),
+                                "p95_ms": float(np.percentile(latencies, 95) * 1000), "calls": args.calls,
+                                "voxels_per_response": points, "grasps": len(response.grasps.poses)}
+                print(f"[bench] service, 640x480, {args.samples} samples, grasps {'on' if grasps else 'off'}: "
+                      f"{percentiles(latencies)} over {args.calls} calls ({points} voxels and "
+                      f"{len(response.grasps.poses)} grasps per response; node says: {response.message})")
 
-        def call(client, request, timeout=60.0):
-            future = client.call_async(request)
-            deadline = time.monotonic() + timeout
-            while not future.done():
-                if time.monotonic() > deadline:
-                    raise TimeoutError("no response")
-                time.sleep(0.0005)
-            return future.result()
-
-        service = client_node.create_client(SampleCompletions, "/pssnet/sample_completions")
-        assert service.wait_for_service(timeout_sec=30), "service not discovered"
-        header_depth = numpy_to_image(view.depth, "32FC1")
-        mask = numpy_to_image(view.mask, "mono8")
-        info = intrinsics_to_camera_info(view.intrinsics)
-        for msg in (header_depth, mask, info):
-            msg.header.frame_id = "camera_depth_optical_frame"
-        print(f"[bench] {model_line}")
-        for grasps in (False, True):
-            request = SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
-                                                num_samples=args.samples, compute_grasps=grasps)
-            for _ in range(5):  # warm-up
-                response = call(service, request)
-                assert response.success, response.message
-            latencies = []
-            for _ in range(args.calls):
-                t0 = time.perf_counter()
-                response = call(service, request)
-                latencies.append(time.perf_counter() - t0)
-                assert response.success, response.message
-            points = sum(c.width for c in response.completions)
-            key = "service_with_grasps" if grasps else "service"
-            results[key] = {"p50_ms": float(np.percentile(latencies, 50) * 1000),
-                            "p95_ms": float(np.percentile(latencies, 95) * 1000), "calls": args.calls,
-                            "voxels_per_response": points, "grasps": len(response.grasps.poses)}
-            print(f"[bench] service, 640x480, {args.samples} samples, grasps {'on' if grasps else 'off'}: "
-                  f"{percentiles(latencies)} over {args.calls} calls ({points} voxels and "
-                  f"{len(response.grasps.poses)} grasps per response; node says: {response.message})")
-
-        # Sustained topic rate in continuous mode.
-        set_params = client_node.create_client(SetParameters, "/pssnet/set_parameters")
-        assert set_params.wait_for_service(timeout_sec=30)
-        result = call(set_params, SetParameters.Request(parameters=[
-            Parameter(name="max_rate_hz", value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
-                                                               double_value=args.max_rate)),
-            Parameter(name="continuous", value=ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=True))]))
-        assert all(r.successful for r in result.results), [r.reason for r in result.results]
-        received: list[tuple[float, int]] = []
-        client_node.create_subscription(
-            PointCloud2, "/pssnet/completions",
-            lambda m: received.append((time.time(), m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)),
-            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-        pubs = [client_node.create_publisher(t, n, qos_profile_sensor_data)
-                for t, n in ((Image, "/depth"), (Image, "/mask"), (CameraInfo, "/camera_info"))]
-        deadline = time.monotonic() + 15
-        while any(p.get_subscription_count() == 0 for p in pubs) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        stats = client_node.create_client(Trigger, "/pssnet/get_stats")
-        before = json.loads(call(stats, Trigger.Request()).message)
-        start, n = time.monotonic(), 0
-        while time.monotonic() - start < args.seconds:
-            now = client_node.get_clock().now().to_msg()
-            for pub, msg in zip(pubs, (header_depth, mask, info), strict=True):
-                msg.header.stamp = now
-                pub.publish(msg)
-            n += 1
-            time.sleep(max(0.0, start + n / args.input_hz - time.monotonic()))
-        time.sleep(1.0)
-        after = json.loads(call(stats, Trigger.Request()).message)
-        delta = {k: after[k] - before[k] for k in after}
-        lat = [t - s * 1e-9 for t, s in received]
-        rate = len(received) / args.seconds
-        results["topics"] = {"input_hz": args.input_hz, "max_rate_hz": args.max_rate, "frames_sent": n,
-                             "completions_received": len(received), "output_hz": rate,
-                             "stamp_to_output_p50_ms": float(np.percentile(lat, 50) * 1000) if lat else None,
-                             "stamp_to_output_p95_ms": float(np.percentile(lat, 95) * 1000) if lat else None,
-                             "node_counters": delta}
-        print(f"[bench] topics: {n} frames at {args.input_hz:g} Hz in {args.seconds:g} s -> {len(received)} "
-              f"completions ({rate:.1f} Hz, max_rate_hz {args.max_rate:g}); input stamp -> completions received: "
-              f"{percentiles(lat) if lat else 'n/a'}")
-        print(f"[bench] node counters: {delta}")
-        executor.shutdown(timeout_sec=1.0)
-        client_node.destroy_node()
+            # Sustained topic rate in continuous mode.
+            result = ros.set_parameters(max_rate_hz=float(args.max_rate), continuous=True)
+            assert all(r.successful for r in result), [r.reason for r in result]
+            received: list[tuple[float, int]] = []
+            ros.node.create_subscription(
+                PointCloud2, "/pssnet/completions",
+                lambda m: received.append((time.time(), m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)),
+                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+            pubs = [ros.node.create_publisher(t, n, qos_profile_sensor_data)
+                    for t, n in ((Image, "/depth"), (Image, "/mask"), (CameraInfo, "/camera_info"))]
+            ros.wait_for_subscribers(pubs)
+            before = ros.stats()
+            start, n = time.monotonic(), 0
+            while time.monotonic() - start < args.seconds:
+                now = ros.node.get_clock().now().to_msg()
+                for pub, msg in zip(pubs, (header_depth, mask, info), strict=True):
+                    msg.header.stamp = now
+                    pub.publish(msg)
+                n += 1
+                time.sleep(max(0.0, start + n / args.input_hz - time.monotonic()))
+            # The node has finished when no set is pending or in progress, and all its completions have arrived.
+            after = ros.wait_idle()
+            wait_until(lambda: len(received) >= after["sets_processed"] - before["sets_processed"], 60.0,
+                       "every completion received")
+            delta = {k: after[k] - before[k] for k in after}
+            lat = [t - s * 1e-9 for t, s in received]
+            rate = len(received) / args.seconds
+            results["topics"] = {"input_hz": args.input_hz, "max_rate_hz": args.max_rate, "frames_sent": n,
+                                 "completions_received": len(received), "output_hz": rate,
+                                 "stamp_to_output_p50_ms": float(np.percentile(lat, 50) * 1000) if lat else None,
+                                 "stamp_to_output_p95_ms": float(np.percentile(lat, 95) * 1000) if lat else None,
+                                 "node_counters": delta}
+            print(f"[bench] topics: {n} frames at {args.input_hz:g} Hz in {args.seconds:g} s -> {len(received)} "
+                  f"completions ({rate:.1f} Hz, max_rate_hz {args.max_rate:g}); input stamp -> completions "
+                  f"received: {percentiles(lat) if lat else 'n/a'}")
+            print(f"[bench] node counters: {delta}")
     finally:
-        context.try_shutdown()
         code = node.stop()
         leftovers = stale_shm_files(node.shm_files)
     print(f"[bench] node exit code {code}; stale shared memory: {sorted(leftovers) or 'none'}")

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pssnet_ros.processes import RosProcess, configure_this_process, ros_env, stale_shm_files
+from pssnet_ros.client import SAMPLE_SERVICE, RosClient
+from pssnet_ros.processes import RosProcess, free_domain_id, ros_env, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
 
@@ -35,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--calls", type=int, default=5, help="service calls timed for the latency (default 5)")
     parser.add_argument("--rate", type=float, default=5.0, help="synthetic camera rate, Hz (default 5)")
     parser.add_argument("--mug-seed", type=int, default=SceneOptions().mug_seed)
-    parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: from the process id)")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS_DOMAIN_ID (default: one no DDS participant on this machine uses)")
     parser.add_argument("--timeout", type=float, default=180.0, help="seconds to wait for start-up")
     parser.add_argument("--verbose", action="store_true", help="echo the node's and camera's output")
     return parser
@@ -45,69 +47,40 @@ class DemoError(RuntimeError):
     """The demo could not complete; the message says at which step."""
 
 
-def call_until_ready(client, request, timeout: float):
+def call_until_ready(ros: RosClient, client, request, timeout: float):
     """Calls the service until the node has a synchronised set (its answer before the camera's first frame
     is an honest success=false); returns (response, latency in seconds)."""
     deadline = time.monotonic() + timeout
     while True:
         t0 = time.perf_counter()
-        future = client.call_async(request)
-        while not future.done():
-            if time.monotonic() > deadline:
-                raise DemoError(f"no answer from the service within {timeout:.0f} s")
-            time.sleep(0.002)
-        response = future.result()
+        try:
+            response = ros.call(client, request, max(1.0, deadline - time.monotonic()))
+        except TimeoutError:
+            raise DemoError(f"no answer from the service within {timeout:.0f} s") from None
         latency = time.perf_counter() - t0
         if response.success:
             return response, latency
         if "no synchronised set has arrived" not in response.message or time.monotonic() > deadline:
             raise DemoError(f"the service answered success=false: {response.message}")
-        time.sleep(0.2)
+        time.sleep(0.2)  # the camera's first frame is on its way
 
 
 def run_client(domain_id: int, samples: int, calls: int, timeout: float):
     """Calls the service from this process; returns the last response and the latencies (s)."""
-    import rclpy
     from pssnet_interfaces.srv import SampleCompletions
-    from rclpy.signals import SignalHandlerOptions
 
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("pssnet_demo_client", context=context)
-    from rclpy.executors import SingleThreadedExecutor
-
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    import threading
-
-    spinner = threading.Thread(target=lambda: _spin(executor, context), daemon=True)
-    spinner.start()
-    try:
-        client = node.create_client(SampleCompletions, "/pssnet/sample_completions")
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise DemoError(f"service /pssnet/sample_completions not discovered within {timeout:.0f} s")
+    with RosClient(domain_id, "pssnet_demo_client") as ros:
+        try:
+            client = ros.service(SampleCompletions, SAMPLE_SERVICE, timeout)
+        except TimeoutError as error:
+            raise DemoError(str(error)) from None
         request = SampleCompletions.Request(num_samples=samples, compute_grasps=True)  # depth empty: use topics
-        response, first = call_until_ready(client, request, timeout)
+        response, first = call_until_ready(ros, client, request, timeout)
         latencies = []
         for _ in range(max(0, calls - 1)):
-            response, latency = call_until_ready(client, request, timeout)
+            response, latency = call_until_ready(ros, client, request, timeout)
             latencies.append(latency)
         return response, latencies or [first]
-    finally:
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        context.try_shutdown()
-        spinner.join(timeout=5)
-
-
-def _spin(executor, context) -> None:
-    from rclpy.executors import ExternalShutdownException
-
-    try:
-        while context.ok():
-            executor.spin_once(timeout_sec=0.1)
-    except (ExternalShutdownException, RuntimeError):
-        pass
 
 
 def write_figure(path: Path, view, response) -> None:
@@ -187,8 +160,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 1 <= args.samples <= 100:
         print(f"[demo] error: --samples must be in [1, 100], got {args.samples}", file=sys.stderr)
         return 2
-    domain = args.domain_id if args.domain_id is not None else 10 + os.getpid() % 90
-    configure_this_process(domain)
+    domain = args.domain_id if args.domain_id is not None else free_domain_id(10 + os.getpid() % 90)
     env = ros_env(domain)
     options = SceneOptions(mug_seed=args.mug_seed)
     view = render_scene(options)
@@ -231,7 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for process in (camera, node):
             if process is not None:
                 codes[process.name] = process.stop()
-        leftovers = stale_shm_files(node.shm_files | (camera.shm_files if camera else set()))
+        leftovers = stale_shm_files({**node.shm_files, **(camera.shm_files if camera else {})})
     bad = {name: c for name, c in codes.items() if c != 0}
     if bad and code == 0:
         print(f"[demo] error: processes exited with {bad}", file=sys.stderr)

@@ -3,9 +3,16 @@
 - :func:`ros_env`: the environment of a child process: its own ROS_DOMAIN_ID, discovery on localhost, the
   shipped Fast DDS profile, and the ROS wheels' bootstrap guard cleared (a child must redo the wheels'
   library-path set-up itself, which matters when it runs another interpreter).
+- :func:`free_domain_id`: a ROS_DOMAIN_ID that no DDS participant on this machine uses right now.
 - :class:`RosProcess`: a child process whose output is collected in the background; ``wait_for`` a log
   line, ``stop`` with SIGINT (then SIGTERM/SIGKILL only if it hangs), and the Fast DDS shared-memory
-  files it had mapped, to check that none are left behind.
+  segments it created, to check that none are left behind (:func:`stale_shm_files`).
+
+Fast DDS shared memory: every participant creates its own segments (``fastrtps_<id>``) and listens on port
+segments (``fastrtps_port<n>``), some of which (ports 7000, 7001, ...) every participant on the machine
+shares, whatever its domain. The owner of a segment or the listener of a port holds an exclusive flock on
+its ``<name>_el`` file. A file left by another process (e.g. one killed with -9) may be opened and even taken
+over by ours, so a process is blamed only for segments it owned that did not exist before it started.
 """
 
 from __future__ import annotations
@@ -22,7 +29,10 @@ from pathlib import Path
 
 BOOTSTRAP_GUARD = "_ROS_WHEELS_BOOTSTRAP_COMPLETE"
 SHM_DIR = Path("/dev/shm")
-_SHM_RE = re.compile(r"(/dev/shm/(?:sem\.)?fastrtps_\S+)")
+SHM_PREFIX = "fastrtps_"
+LOCK_SUFFIX = "_el"  # Fast DDS: the owner of segment X holds a flock on X_el
+#: RTPS well-known ports (UDP): domain d uses [PORT_BASE + DOMAIN_GAIN * d, ... + DOMAIN_GAIN)
+PORT_BASE, DOMAIN_GAIN = 7400, 250
 
 
 def fastdds_profile() -> Path | None:
@@ -72,25 +82,111 @@ def configure_this_process(domain_id: int) -> None:
     os.environ["ROS_DOMAIN_ID"] = str(domain_id)
 
 
-def mapped_shm_files(pid: int) -> set[str]:
-    """Fast DDS shared-memory files a live process has mapped (empty once it exited)."""
+def udp_ports_in_use() -> set[int]:
+    """Local UDP ports bound on this machine (IPv4 and IPv6)."""
+    ports: set[int] = set()
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            ports.add(int(line.split()[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
+def free_domain_id(preferred: int, low: int = 10, high: int = 99) -> int:
+    """A ROS_DOMAIN_ID in [low, high] whose RTPS ports nobody has bound, starting the search at ``preferred``.
+
+    Another DDS user on the same domain (a concurrent test run, a robot stack) would talk to our nodes.
+    """
+    busy = udp_ports_in_use()
+    count = high - low + 1
+    for i in range(count):
+        domain = low + (preferred - low + i) % count
+        first = PORT_BASE + DOMAIN_GAIN * domain
+        if not any(first <= port < first + DOMAIN_GAIN for port in busy):
+            return domain
+    raise RuntimeError(f"every ROS domain in [{low}, {high}] is in use on this machine")
+
+
+def shm_files() -> dict[str, int]:
+    """Fast DDS files in /dev/shm: path -> inode."""
+    files: dict[str, int] = {}
     try:
-        text = Path(f"/proc/{pid}/maps").read_text()
+        entries = list(os.scandir(SHM_DIR))
     except OSError:
-        return set()
-    return set(_SHM_RE.findall(text))
+        return files
+    for entry in entries:
+        if entry.name.startswith(SHM_PREFIX):
+            try:
+                files[entry.path] = entry.inode()
+            except OSError:  # removed meanwhile
+                continue
+    return files
 
 
-def stale_shm_files(files: set[str]) -> set[str]:
-    """Those of ``files`` that still exist and that no live process maps any more."""
-    existing = {f for f in files if Path(f).exists()}
+def _locked_inodes(pid: int | None = None) -> set[int]:
+    """Inodes of files flock-ed by ``pid`` (None: by any live process), from /proc/locks."""
+    inodes: set[int] = set()
+    try:
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return inodes
+    for line in lines:
+        fields = line.split()
+        if "->" in fields:  # a waiter blocked on the lock above, not a holder
+            continue
+        try:
+            holder, device = int(fields[4]), fields[5]
+        except (IndexError, ValueError):
+            continue
+        if pid is None or holder == pid:
+            inodes.add(int(device.rsplit(":", 1)[1]))
+    return inodes
+
+
+def owned_shm_files(pid: int) -> dict[str, int]:
+    """Fast DDS segments and ports a live process owns (it holds the flock of their ``_el`` file): path -> inode."""
+    locked = _locked_inodes(pid)
+    files = shm_files()
+    owned = {}
+    for path, inode in files.items():
+        if inode in locked and path.endswith(LOCK_SUFFIX):
+            segment = path[:-len(LOCK_SUFFIX)]
+            if segment in files:
+                owned[segment] = files[segment]
+    return owned
+
+
+def _mapped_inodes() -> set[int]:
+    """Inodes of /dev/shm files that any live process maps."""
+    inodes: set[int] = set()
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            text = (proc / "maps").read_text()
+        except OSError:  # exited meanwhile, or not ours to read
+            continue
+        for line in text.splitlines():
+            fields = line.split(maxsplit=5)
+            if len(fields) == 6 and fields[5].startswith("/dev/shm/"):
+                inodes.add(int(fields[4]))
+    return inodes
+
+
+def stale_shm_files(files: dict[str, int]) -> set[str]:
+    """Those of ``files`` (path -> inode) that still exist as the same file and that no live process maps or
+    locks any more: shared memory leaked by processes that are gone."""
+    current = shm_files()
+    existing = {path for path, inode in files.items() if current.get(path) == inode}
     if not existing:
         return set()
-    in_use: set[str] = set()
-    for proc in Path("/proc").iterdir():
-        if proc.name.isdigit():
-            in_use |= mapped_shm_files(int(proc.name))
-    return existing - in_use
+    in_use = _mapped_inodes()
+    locked = _locked_inodes()
+    lock_of = {path: current.get(path + LOCK_SUFFIX) for path in existing}
+    return {path for path in existing if files[path] not in in_use and lock_of[path] not in locked}
 
 
 class RosProcess:
@@ -103,7 +199,9 @@ class RosProcess:
         self._lines: list[str] = []
         self._cond = threading.Condition()
         self._echo = echo
-        self.shm_files: set[str] = set()
+        # Fast DDS files that existed before this process started cannot be ones it created.
+        self._shm_before = set(shm_files().values())
+        self.shm_files: dict[str, int] = {}  # path -> inode of the segments it created and owned
         self.proc = subprocess.Popen(self.argv, env=dict(env), cwd=cwd, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True, bufsize=1)
         self._reader = threading.Thread(target=self._read, name=f"{name}-reader", daemon=True)
@@ -131,9 +229,20 @@ class RosProcess:
         with self._cond:
             return "\n".join(self._lines)
 
+    def lines(self, start: int = 0) -> list[str]:
+        """Output lines from index ``start`` on (``len(lines())`` marks a point to read from later)."""
+        with self._cond:
+            return self._lines[start:]
+
     @property
     def pid(self) -> int:
         return self.proc.pid
+
+    def record_shm_files(self) -> None:
+        """Adds the Fast DDS segments this (live) process owns now and created itself to :attr:`shm_files`."""
+        for path, inode in owned_shm_files(self.pid).items():
+            if inode not in self._shm_before:
+                self.shm_files[path] = inode
 
     def running(self) -> bool:
         return self.proc.poll() is None
@@ -148,7 +257,7 @@ class RosProcess:
                 for line in self._lines[seen:]:
                     match = regex.search(line)
                     if match:
-                        self.shm_files |= mapped_shm_files(self.pid)
+                        self.record_shm_files()
                         return match
                 seen = len(self._lines)
                 if self.proc.poll() is not None and not self._reader.is_alive():
@@ -163,7 +272,7 @@ class RosProcess:
     def stop(self, timeout: float = 20.0) -> int:
         """SIGINT, wait; SIGTERM then SIGKILL only when it does not exit. Returns the exit code."""
         if self.proc.poll() is None:
-            self.shm_files |= mapped_shm_files(self.pid)
+            self.record_shm_files()
             self.proc.send_signal(signal.SIGINT)
             try:
                 self.proc.wait(timeout=timeout)

@@ -1,13 +1,12 @@
-"""Shared helpers of the node tests: a rendered mug scene, checkpoints, and an rclpy client in this process.
+"""Shared helpers of the node tests: a rendered mug scene, checkpoints, messages and node arguments.
 
-(Named test_node_* so it belongs to the node area; it holds no tests itself.)
+(Named test_node_* so it belongs to the node area; it holds no tests itself. The rclpy client in this process
+is :class:`pssnet_ros.client.RosClient`, the one the demo and the benchmark use.)
 """
 
 from __future__ import annotations
 
 import os
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,14 +17,15 @@ from pssnet_core.inference import DEFAULT_CHECKPOINT
 from pssnet_core.models import build_model, default_config
 from pssnet_core.shapes import make_shape
 from pssnet_core.training import save_checkpoint
-from pssnet_ros.processes import configure_this_process
+from pssnet_ros.processes import free_domain_id
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32, "flow_hidden": 32, "flow_couplings": 4}
 
 
 def domain_for(module_index: int) -> int:
-    """A ROS_DOMAIN_ID for one test module, unlikely to clash with another run (domains 10..99)."""
-    return 10 + (os.getpid() * 5 + module_index) % 90
+    """A ROS_DOMAIN_ID for one test module (10..99): one that no DDS participant on this machine uses now,
+    searched from a start that differs between modules and runs."""
+    return free_domain_id(10 + (os.getpid() * 5 + module_index) % 90)
 
 
 def render_mug_scene(seed: int = 0, distance: float = 0.6, tilt_deg: float = 30.0) -> RenderedView:
@@ -47,56 +47,6 @@ def node_checkpoint(tmp_dir: Path) -> tuple[Path, bool]:
     if DEFAULT_CHECKPOINT.is_file():
         return DEFAULT_CHECKPOINT, True
     return tiny_checkpoint(tmp_dir / "tiny32.pt"), False
-
-
-class RosClient:
-    """An rclpy context + node in this (pytest) process, spun by a background executor."""
-
-    def __init__(self, domain_id: int, name: str = "test_client") -> None:
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.signals import SignalHandlerOptions
-
-        configure_this_process(domain_id)
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        from rclpy.executors import ExternalShutdownException
-
-        try:
-            while self.context.ok():
-                self.executor.spin_once(timeout_sec=0.1)
-        except (ExternalShutdownException, RuntimeError):
-            pass
-
-    def client(self, srv_type, name: str, timeout: float = 30.0):
-        """A service client whose server has been discovered (waits up to ``timeout`` s)."""
-        client = self.node.create_client(srv_type, name)
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise TimeoutError(f"service {name} not discovered within {timeout} s")
-        return client
-
-    @staticmethod
-    def call(client, request, timeout: float = 60.0):
-        future = client.call_async(request)
-        deadline = time.monotonic() + timeout
-        while not future.done():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no response from {client.srv_name} within {timeout} s")
-            time.sleep(0.005)
-        return future.result()
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
-        self._thread.join(timeout=5)
 
 
 def stamped_header(sec: int, nanosec: int = 0, frame_id: str = "camera_depth_optical_frame"):

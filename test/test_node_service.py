@@ -6,21 +6,15 @@ checks the exit code and that no Fast DDS shared-memory file of it is left.
 
 from __future__ import annotations
 
-import json
 import re
 import threading
 
 import numpy as np
 import pytest
 from pssnet_interfaces.srv import SampleCompletions
-from rcl_interfaces.msg import Parameter as ParameterMsg
-from rcl_interfaces.msg import ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
 from scipy.spatial import cKDTree
 from sensor_msgs.msg import PointField
-from std_srvs.srv import Trigger
 from test_node_helpers import (
-    RosClient,
     domain_for,
     make_request,
     node_args,
@@ -30,12 +24,12 @@ from test_node_helpers import (
 )
 
 from pssnet_core.geometry import CameraIntrinsics
+from pssnet_ros.client import SAMPLE_SERVICE, RosClient
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy
 from pssnet_ros.processes import RosProcess, ros_env, stale_shm_files
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(1)
-SERVICE = "/pssnet/sample_completions"
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +64,7 @@ def ros(node):
 
 @pytest.fixture(scope="module")
 def service(ros):
-    return ros.client(SampleCompletions, SERVICE, timeout=30)
+    return ros.service(SampleCompletions, SAMPLE_SERVICE, timeout=30)
 
 
 def call(ros, service, request, timeout=60.0):
@@ -206,8 +200,7 @@ def test_every_bad_input_gets_an_exact_answer_and_the_node_keeps_serving(ros, se
         assert len(response.completions) == 0
     assert node.running()
     assert call(ros, service, make_request(scene, stamped_header(60), num_samples=1)).success
-    stats = json.loads(ros.call(ros.client(Trigger, "/pssnet/get_stats"), Trigger.Request()).message)
-    assert stats["service_failures"] >= len(cases)
+    assert ros.stats()["service_failures"] >= len(cases)
 
 
 def test_empty_depth_without_topic_input_is_explained(ros, service):
@@ -219,7 +212,7 @@ def test_empty_depth_without_topic_input_is_explained(ros, service):
 
 def test_concurrent_calls_are_all_answered(ros, service, scene):
     results: list = [None] * 4
-    clients = [service] + [ros.client(SampleCompletions, SERVICE) for _ in range(3)]
+    clients = [service] + [ros.service(SampleCompletions, SAMPLE_SERVICE, new=True) for _ in range(3)]
 
     def worker(i):
         results[i] = call(ros, clients[i], make_request(scene, stamped_header(100 + i), num_samples=3))
@@ -234,13 +227,7 @@ def test_concurrent_calls_are_all_answered(ros, service, scene):
 
 
 def set_parameter(ros, name, value):
-    client = ros.client(SetParameters, "/pssnet/set_parameters")
-    if isinstance(value, int):
-        pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
-    else:
-        pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
-    request = SetParameters.Request(parameters=[ParameterMsg(name=name, value=pv)])
-    return ros.call(client, request).results[0]
+    return ros.set_parameters(**{name: value})[0]
 
 
 def test_invalid_parameters_are_rejected_with_a_reason(ros, service, scene):
@@ -258,8 +245,8 @@ def test_invalid_parameters_are_rejected_with_a_reason(ros, service, scene):
 
 def test_sigint_shutdown_is_clean(ros, node):
     assert node.running()
-    files = set(node.shm_files)
-    assert files, "expected the node to map Fast DDS shared-memory files"
+    files = dict(node.shm_files)
+    assert files, "expected the node to own Fast DDS shared-memory segments"
     code = node.stop()
     assert code == 0, node.output[-3000:]
     assert "Traceback" not in node.output

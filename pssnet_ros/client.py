@@ -1,0 +1,147 @@
+"""One in-process rclpy client of the completion node, shared by the tests, the demo and the benchmark.
+
+    with RosClient(domain_id) as ros:
+        service = ros.service(SampleCompletions, SAMPLE_SERVICE)
+        response = ros.call(service, SampleCompletions.Request(num_samples=5))
+        counters = ros.stats()
+
+Its own rclpy context (so several can live in one process next to a node under test), spun by a background
+executor; calls wait on the response's future (an event, not a polling loop), and :func:`wait_until` waits
+for a condition with a deadline instead of sleeping a guessed time.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from pssnet_ros.processes import configure_this_process
+
+NODE = "/pssnet"
+SAMPLE_SERVICE = f"{NODE}/sample_completions"
+STATS_SERVICE = f"{NODE}/get_stats"
+
+T = TypeVar("T")
+
+
+def wait_until(condition: Callable[[], T], timeout: float, what: str, interval: float = 0.05) -> T:
+    """Polls ``condition`` until it returns a truthy value, which is returned.
+
+    Raises:
+        TimeoutError: still false after ``timeout`` seconds; the message says what was awaited.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{what}: not within {timeout:g} s")
+        time.sleep(interval)
+
+
+class RosClient:
+    """An rclpy context + node in this process, spun by a background single-threaded executor.
+
+    Args:
+        domain_id: ROS_DOMAIN_ID of the node to talk to.
+        name: node name of this client.
+    """
+
+    def __init__(self, domain_id: int, name: str = "pssnet_client") -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+
+        configure_this_process(domain_id)
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(name, context=self.context)
+        self._executor = SingleThreadedExecutor(context=self.context)
+        self._executor.add_node(self.node)
+        self._clients: dict[tuple[type, str], Any] = {}
+        self._thread = threading.Thread(target=self._spin, name=f"{name}-executor", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            while self.context.ok():
+                self._executor.spin_once(timeout_sec=0.1)
+        except (ExternalShutdownException, RuntimeError):  # the context was shut down under the executor
+            pass
+
+    def service(self, srv_type: type, name: str, timeout: float = 30.0, new: bool = False) -> Any:
+        """A client of service ``name`` whose server has been discovered (waits up to ``timeout`` s).
+
+        Clients are cached by (type, name) unless ``new`` (several clients of one service, e.g. for concurrency).
+        """
+        key = (srv_type, name)
+        if not new and key in self._clients:
+            return self._clients[key]
+        client = self.node.create_client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=timeout):
+            self.node.destroy_client(client)
+            raise TimeoutError(f"service {name} not discovered within {timeout:g} s")
+        if not new:
+            self._clients[key] = client
+        return client
+
+    @staticmethod
+    def call(client: Any, request: Any, timeout: float = 60.0) -> Any:
+        """Sends ``request`` and waits for the response (TimeoutError after ``timeout`` s)."""
+        done = threading.Event()
+        future = client.call_async(request)
+        future.add_done_callback(lambda _: done.set())
+        if not done.wait(timeout):
+            client.remove_pending_request(future)
+            raise TimeoutError(f"no response from {client.srv_name} within {timeout:g} s")
+        if future.exception() is not None:
+            raise future.exception()
+        return future.result()
+
+    def stats(self, timeout: float = 30.0) -> dict[str, int]:
+        """The node's counters (``/pssnet/get_stats``)."""
+        from std_srvs.srv import Trigger
+
+        return json.loads(self.call(self.service(Trigger, STATS_SERVICE, timeout), Trigger.Request(), timeout).message)
+
+    def wait_idle(self, timeout: float = 60.0) -> dict[str, int]:
+        """Waits until the node has no topic set pending or in progress; returns its counters at that moment."""
+
+        def idle() -> dict[str, int] | None:
+            stats = self.stats(timeout)
+            return stats if stats["sets_pending"] == 0 and stats["sets_in_progress"] == 0 else None
+
+        return wait_until(idle, timeout, "the node idle (no set pending or in progress)")
+
+    def set_parameters(self, node: str = NODE, timeout: float = 30.0, **values: bool | int | float | str) -> list:
+        """Sets parameters of ``node`` in one request; returns the SetParametersResult of each (in order)."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        parameters = [Parameter(name, value=value).to_parameter_msg() for name, value in values.items()]
+        request = SetParameters.Request(parameters=parameters)
+        return self.call(self.service(SetParameters, f"{node}/set_parameters", timeout), request, timeout).results
+
+    @staticmethod
+    def wait_for_subscribers(publishers: list, timeout: float = 30.0) -> None:
+        """Waits until every publisher has matched at least one subscription (discovery)."""
+        wait_until(lambda: all(p.get_subscription_count() > 0 for p in publishers), timeout,
+                   f"subscribers of {', '.join(p.topic_name for p in publishers)}")
+
+    def close(self) -> None:
+        self._executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+        self._thread.join(timeout=5)
+
+    def __enter__(self) -> RosClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

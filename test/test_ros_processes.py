@@ -1,0 +1,79 @@
+"""Child ROS processes: free domains, and blaming only the shared memory a process created itself."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import sys
+from pathlib import Path
+
+import pytest
+from test_node_helpers import domain_for
+
+from pssnet_ros.processes import (
+    DOMAIN_GAIN,
+    LOCK_SUFFIX,
+    PORT_BASE,
+    RosProcess,
+    free_domain_id,
+    ros_env,
+    shm_files,
+    stale_shm_files,
+)
+
+PARTICIPANT = """
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from std_msgs.msg import String
+rclpy.init()
+node = rclpy.create_node("shm_probe")
+node.create_publisher(String, "probe", 10)
+node.create_subscription(String, "probe", lambda m: None, 10)
+print("participant up", flush=True)
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def test_a_domain_with_a_bound_rtps_port_is_skipped():
+    domain = free_domain_id(40)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", PORT_BASE + DOMAIN_GAIN * domain + 17))  # as a participant of that domain does
+        assert free_domain_id(domain) != domain
+        with pytest.raises(RuntimeError, match=f"every ROS domain in \\[{domain}, {domain}\\] is in use"):
+            free_domain_id(domain, low=domain, high=domain)
+    assert free_domain_id(domain) == domain
+
+
+@pytest.mark.ros
+def test_segments_left_by_a_killed_process_are_not_blamed_on_the_next_one():
+    """Fast DDS port segments are shared: a participant killed with -9 leaves its files behind, and the next
+    participant opens them, takes them over, or replaces them by new files of the same name. Only the killed
+    one is blamed for its files; the next one only for files it created (compared by inode)."""
+    env = ros_env(domain_for(7))
+    killed = RosProcess([sys.executable, "-c", PARTICIPANT], env, name="killed")
+    killed.wait_for("participant up", timeout=60)
+    assert killed.shm_files, "a participant owns its segments"
+    killed.proc.send_signal(signal.SIGKILL)
+    killed.stop()
+    left = stale_shm_files(killed.shm_files)
+    try:
+        assert left, "kill -9 leaves the segments a participant created"
+        with RosProcess([sys.executable, "-c", PARTICIPANT], env, name="clean") as clean:
+            clean.wait_for("participant up", timeout=60)
+            before = {path: inode for path, inode in killed.shm_files.items() if path in left}
+            assert not set(clean.shm_files.items()) & set(before.items()), "files that existed before it started"
+            assert clean.stop() == 0, clean.output
+        assert stale_shm_files(clean.shm_files) == set()
+    finally:
+        for path in stale_shm_files(killed.shm_files):  # ours to clean: the killed participant's leftovers
+            name = Path(path).name
+            for leftover in (path, path + LOCK_SUFFIX, f"{Path(path).parent}/sem.{name}_mutex"):
+                if os.path.exists(leftover):
+                    os.unlink(leftover)
+    assert not set(shm_files()) & left
