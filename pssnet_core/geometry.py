@@ -15,7 +15,7 @@ projected on the horizontal plane), y = z x x. Grid coordinates are continuous v
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -80,6 +80,134 @@ class CameraIntrinsics:
             u = self.fx * points[:, 0] / z + self.cx
             v = self.fy * points[:, 1] / z + self.cy
         return u, v, z
+
+
+@dataclass(frozen=True)
+class CameraLimits:
+    """Calibrations that no real depth camera has: a CameraInfo outside these is corrupt, not a camera.
+
+    Attributes:
+        min_fov_deg: smallest field of view along either image axis (a 64 px crop of a 525 px focal-length
+            camera still sees 7 degrees).
+        max_fov_deg: largest field of view along either image axis (a pinhole model cannot hold 180 degrees).
+        max_pixel_aspect: largest ratio of fx and fy (pixels are square, or binned 2:1).
+        max_skew_shift_px: the skew K[0,1], which the pinhole model here ignores, may shift no pixel further.
+        matrix_tolerance: how far the fixed entries of K and P (zeros, the 1) and R's orthonormality may be off.
+        projection_tolerance: relative difference allowed between P's and K's focal lengths and principal
+            points when the image is not rectified (no distortion and R = identity), where they must agree.
+    """
+
+    min_fov_deg: float = 1.0
+    max_fov_deg: float = 160.0
+    max_pixel_aspect: float = 2.0
+    max_skew_shift_px: float = 0.5
+    matrix_tolerance: float = 1e-3
+    projection_tolerance: float = 0.01
+
+
+def check_intrinsics(intrinsics: CameraIntrinsics, limits: CameraLimits | None = None, matrix: str = "K") -> None:
+    """Raises ObservationError, naming the value, when no real camera has these pinhole intrinsics.
+
+    Checks the field of view along each axis, the pixel aspect ratio, and that the principal point lies
+    inside the image.
+
+    Args:
+        intrinsics: the intrinsics to check.
+        limits: what real cameras have (default :class:`CameraLimits`).
+        matrix: name of the matrix they come from, for the message ("K", "P").
+    """
+    limits = limits or CameraLimits()
+    k = intrinsics
+    for name, focal, size, direction in (("fx", k.fx, k.width, "horizontal"), ("fy", k.fy, k.height, "vertical")):
+        fov = float(np.degrees(2.0 * np.arctan(size / (2.0 * focal))))
+        if not limits.min_fov_deg <= fov <= limits.max_fov_deg:
+            raise ObservationError(
+                f"{matrix} {name} = {focal:g} px gives a {direction} field of view of {fov:.3g} deg over {size} px; "
+                f"real cameras have {limits.min_fov_deg:g} to {limits.max_fov_deg:g} deg (corrupt calibration?)")
+    aspect = max(k.fx / k.fy, k.fy / k.fx)
+    if aspect > limits.max_pixel_aspect:
+        raise ObservationError(f"{matrix} fx = {k.fx:g} px and fy = {k.fy:g} px differ by a factor of {aspect:.3g}; "
+                               f"real pixels are square to within {limits.max_pixel_aspect:g}x")
+    for name, centre, size, side in (("cx", k.cx, k.width, "wide"), ("cy", k.cy, k.height, "high")):
+        if not 0.0 <= centre <= size:
+            raise ObservationError(f"{matrix} principal point {name} = {centre:g} px lies outside the {size} px "
+                                   f"{side} image")
+
+
+def check_camera_model(width: int, height: int, k: np.ndarray | Sequence[float], d: np.ndarray | Sequence[float] = (),
+                       r: np.ndarray | Sequence[float] = (), p: np.ndarray | Sequence[float] = (),
+                       limits: CameraLimits | None = None) -> CameraIntrinsics:
+    """Pinhole intrinsics from a full calibration (as in sensor_msgs/CameraInfo), refusing one no camera has.
+
+    Args:
+        width: image width (pixels).
+        height: image height (pixels).
+        k: row-major 3x3 camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]].
+        d: distortion coefficients (empty or all zero: none).
+        r: row-major 3x3 rectification rotation; empty or all zero: not given.
+        p: row-major 3x4 projection matrix [[fx', s', cx', Tx], [0, fy', cy', Ty], [0, 0, 1, 0]]; empty or all
+            zero: not given. Without distortion and rotation the image is its own rectified image, so P's
+            intrinsics must then equal K's.
+        limits: what real cameras have (default :class:`CameraLimits`).
+
+    Returns:
+        The intrinsics of K (the skew, checked to be negligible, is dropped).
+
+    Raises:
+        ObservationError: the message names the matrix entry that is wrong.
+    """
+    limits = limits or CameraLimits()
+    tol = limits.matrix_tolerance
+    k = np.asarray(k, dtype=np.float64).reshape(3, 3)
+    intrinsics = CameraIntrinsics.from_k(k, width, height)
+    check_intrinsics(intrinsics, limits)
+    fixed = np.array([k[1, 0], k[2, 0], k[2, 1], k[2, 2] - 1.0])
+    if not np.all(np.isfinite(fixed)) or np.abs(fixed).max() > tol:
+        raise ObservationError(f"K must have the form [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got rows 2-3 "
+                               f"{k[1].tolist()} and {k[2].tolist()}")
+    skew = float(k[0, 1])
+    # Ignoring the skew moves a pixel in row v by skew * (v - cy) / fy: bound that over the image.
+    rows = max(intrinsics.cy, height - intrinsics.cy)
+    max_skew = limits.max_skew_shift_px * intrinsics.fy / rows
+    if not abs(skew) <= max_skew:
+        shift = abs(skew) * rows / intrinsics.fy
+        raise ObservationError(f"K skew K[0,1] = {skew:g} shifts pixels by up to {shift:.3g} px, which a pinhole "
+                               f"model without skew ignores; |skew| must be at most {max_skew:.3g} "
+                               f"({limits.max_skew_shift_px:g} px)")
+    rotation = np.asarray(r, dtype=np.float64).reshape(-1)
+    rotated = False
+    if rotation.size and np.any(rotation):
+        if rotation.size != 9 or not np.all(np.isfinite(rotation)):
+            raise ObservationError(f"R must be 9 finite numbers, got {rotation.tolist()}")
+        rotation = rotation.reshape(3, 3)
+        error = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+        if error > tol or np.linalg.det(rotation) < 0:
+            raise ObservationError(f"R is not a rotation matrix (R R^T differs from I by {error:.3g}, det "
+                                   f"{np.linalg.det(rotation):.3g}): {rotation.round(6).tolist()}")
+        rotated = float(np.abs(rotation - np.eye(3)).max()) > tol
+    projection = np.asarray(p, dtype=np.float64).reshape(-1)
+    if projection.size and np.any(projection):
+        if projection.size != 12 or not np.all(np.isfinite(projection)):
+            raise ObservationError(f"P must be 12 finite numbers, got {projection.tolist()}")
+        projection = projection.reshape(3, 4)
+        fixed = np.array([projection[1, 0], projection[2, 0], projection[2, 1], projection[2, 2] - 1.0,
+                          projection[2, 3]])
+        if np.abs(fixed).max() > tol:
+            raise ObservationError(f"P must have the form [[fx', s', cx', Tx], [0, fy', cy', Ty], [0, 0, 1, 0]], "
+                                   f"got rows 2-3 {projection[1].tolist()} and {projection[2].tolist()}")
+        rectified = CameraIntrinsics.from_k(projection[:, :3], width, height)
+        check_intrinsics(rectified, limits, matrix="P")
+        distortion = np.asarray(d, dtype=np.float64).reshape(-1)
+        if not rotated and not np.any(distortion):
+            rel = limits.projection_tolerance
+            for name, of_p, of_k, scale in (("fx", rectified.fx, intrinsics.fx, intrinsics.fx),
+                                            ("fy", rectified.fy, intrinsics.fy, intrinsics.fy),
+                                            ("cx", rectified.cx, intrinsics.cx, width),
+                                            ("cy", rectified.cy, intrinsics.cy, height)):
+                if abs(of_p - of_k) > rel * scale:
+                    raise ObservationError(f"P {name} = {of_p:g} but K {name} = {of_k:g}: without distortion and "
+                                           "rectification (D zero, R identity) the two must agree")
+    return intrinsics
 
 
 def validate_depth_and_mask(depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics) -> None:
@@ -326,6 +454,33 @@ def place_grid(points: np.ndarray, up: np.ndarray, config: GridConfig) -> GridPo
     ])
     return GridPose(rotation=rotation, origin=rotation @ corner_local, voxel_size=config.voxel_size,
                     size=config.size)
+
+
+def check_object_scale(points: np.ndarray, pose: GridPose, config: GridConfig, min_voxels: float,
+                       outliers: float = 0.01) -> None:
+    """Raises ObservationError when the observed object is implausibly large or small for the grid.
+
+    The central part of the points (without the ``outliers`` fraction at each end of every grid axis: stray
+    mask pixels) must fit in the room the grid's placement leaves along each axis, and must span at least
+    ``min_voxels`` along one. Wrong depth units (a 16-bit image in 0.1 mm read as mm) or a wrong focal
+    length scale the object by the same factor and fail here.
+    """
+    grid = pose.camera_to_grid(points)
+    lo, hi = np.quantile(grid, [outliers, 1.0 - outliers], axis=0)
+    extent = hi - lo
+    room = np.array([config.size - config.front_margin, config.size, config.size - config.bottom_margin])
+    voxel = config.voxel_size
+    hint = "for this model, or the depth units (depth_scale of 16-bit images) or the intrinsics are wrong"
+    axis = int(np.argmax(extent / room))
+    if extent[axis] > room[axis]:
+        name = ("along the view", "across the view", "upwards")[axis]
+        raise ObservationError(f"the observed object spans {extent[axis] * voxel:.3g} m {name}, more than the "
+                               f"{room[axis] * voxel:.3g} m the {config.size}^3 grid of {voxel * 1000:.3g} mm voxels "
+                               f"holds: too large {hint}")
+    if extent.max() < min_voxels:
+        raise ObservationError(f"the observed object spans only {extent.max() * voxel * 1000:.3g} mm, less than "
+                               f"{min_voxels:g} voxels ({min_voxels * voxel * 1000:.3g} mm) of the grid: too small "
+                               f"{hint}")
 
 
 @dataclass

@@ -21,7 +21,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pssnet_core.geometry import CameraIntrinsics, GridConfig, Observation, ObservationError, observe
+from pssnet_core.geometry import (
+    CameraIntrinsics,
+    GridConfig,
+    Observation,
+    ObservationError,
+    check_intrinsics,
+    check_object_scale,
+    observe,
+)
 from pssnet_core.grasps import GraspConfig, GraspError, GraspSet, plan_grasps
 
 if TYPE_CHECKING:  # torch is imported only when a model is loaded: `completion_node --help` stays fast
@@ -56,6 +64,8 @@ class PipelineConfig:
         max_depth: readings farther than this are "no reading" (metres).
         min_mask_pixels: masks with fewer pixels are rejected.
         min_valid_points: fewer masked pixels with a valid depth is an error.
+        min_object_voxels: an observed object spanning fewer voxels than this along every grid axis is
+            implausibly small (wrong depth units or intrinsics); one larger than the grid is refused too.
         grasps: gripper, candidate and scoring options (:class:`pssnet_core.grasps.GraspConfig`; its seed is
             replaced by each call's latent seed).
         grasp_top_k: grasps returned, best first.
@@ -77,6 +87,7 @@ class PipelineConfig:
     max_depth: float = 5.0
     min_mask_pixels: int = 50
     min_valid_points: int = 20
+    min_object_voxels: float = 2.0
     grasps: GraspConfig = field(default_factory=GraspConfig)
     grasp_top_k: int = 10
     grasp_min_score: float = 0.0
@@ -96,6 +107,8 @@ class PipelineConfig:
             raise ValueError(f"up_vector must be 3 finite numbers, not all zero, got {list(self.up_vector)}")
         if self.min_mask_pixels < 1 or self.min_valid_points < 1:
             raise ValueError("min_mask_pixels and min_valid_points must be >= 1")
+        if not self.min_object_voxels >= 0:
+            raise ValueError(f"min_object_voxels must be >= 0, got {self.min_object_voxels}")
         if self.grasp_top_k < 1 or not 0.0 <= self.grasp_min_score <= 1.0:
             raise ValueError(f"grasp_top_k must be >= 1 and grasp_min_score in [0, 1], got {self.grasp_top_k} and "
                              f"{self.grasp_min_score}")
@@ -241,6 +254,10 @@ class CompletionPipeline:
         if depth.shape != (intrinsics.height, intrinsics.width):
             raise PipelineInputError(f"depth is {depth.shape[1]}x{depth.shape[0]} but camera_info says "
                                      f"{intrinsics.width}x{intrinsics.height}")
+        try:
+            check_intrinsics(intrinsics)
+        except ObservationError as error:
+            raise PipelineInputError(f"intrinsics: {error}") from error
         mask_pixels = int(np.count_nonzero(mask))
         if mask_pixels < config.min_mask_pixels:
             what = "empty" if mask_pixels == 0 else "too small"
@@ -277,6 +294,7 @@ class CompletionPipeline:
             up = self._up_vector(depth, mask, intrinsics, config)
             observation = observe(depth, mask, intrinsics, up, grid, config.min_depth, config.max_depth,
                                   config.min_valid_points)
+            check_object_scale(observation.points, observation.pose, grid, config.min_object_voxels)
         except ObservationError as error:
             raise PipelineInputError(str(error)) from error
         t1 = time.perf_counter()

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
-from pssnet_core.geometry import CameraIntrinsics, ObservationError
+from pssnet_core.geometry import CameraIntrinsics, ObservationError, check_camera_model
 
 
 class ConversionError(ValueError):
@@ -133,10 +133,14 @@ def numpy_to_image(array: np.ndarray, encoding: str, header: Header | None = Non
 
 
 def camera_info_to_intrinsics(msg: CameraInfo) -> CameraIntrinsics:
-    """CameraInfo -> pinhole intrinsics from its K matrix.
+    """CameraInfo -> pinhole intrinsics from its K matrix, refusing calibrations no real camera has.
+
+    The checks (field of view, principal point, skew, R and P consistent with K) are the ROS-free
+    :func:`pssnet_core.geometry.check_camera_model`.
 
     Raises:
-        ConversionError: zero image size, or a K matrix with zero/negative/non-finite focal lengths.
+        ConversionError: zero image size, an all-zero K, or an implausible calibration (the message names the
+            value).
     """
     if int(msg.width) == 0 or int(msg.height) == 0:
         raise ConversionError(f"camera_info has image size {msg.width}x{msg.height} (uncalibrated camera?)")
@@ -144,7 +148,7 @@ def camera_info_to_intrinsics(msg: CameraInfo) -> CameraIntrinsics:
     if k.shape != (9,) or not np.any(k):
         raise ConversionError("camera_info K matrix is all zeros (uncalibrated camera?)")
     try:
-        return CameraIntrinsics.from_k(k, int(msg.width), int(msg.height))
+        return check_camera_model(int(msg.width), int(msg.height), k, msg.d, msg.r, msg.p)
     except ObservationError as error:
         raise ConversionError(f"camera_info: {error}") from error
 

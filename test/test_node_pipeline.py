@@ -9,9 +9,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 from test_node_helpers import render_mug_scene, tiny_checkpoint
 
-from pssnet_core.geometry import CameraIntrinsics, GridConfig, ObservationError
+from pssnet_core.geometry import (
+    CameraIntrinsics,
+    CameraLimits,
+    GridConfig,
+    ObservationError,
+    check_camera_model,
+    check_intrinsics,
+)
 from pssnet_core.inference import CompletionResult
 from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineInputError
 from pssnet_core.support_plane import fit_support_plane
@@ -106,6 +114,115 @@ def test_bad_input_raises_exact_messages(scene):
     pipeline.config = looking_down
     with pytest.raises(PipelineInputError, match="camera looks .almost. straight along the up vector"):
         pipeline.run(scene.depth, scene.mask, scene.intrinsics)
+
+
+KINECT = CameraIntrinsics.kinect_like()
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"fx": 1e30}, r"^intrinsics: K fx = 1e\+30 px gives a horizontal field of view of 3.67e-26 deg over 640 px; "
+                   r"real cameras have 1 to 160 deg \(corrupt calibration\?\)$"),
+    ({"fy": 1e30}, r"^intrinsics: K fy = 1e\+30 px gives a vertical field of view of 2.75e-26 deg over 480 px"),
+    ({"fx": 5.0, "fy": 5.0}, r"^intrinsics: K fx = 5 px gives a horizontal field of view of 178 deg over 640 px"),
+    ({"fy": 250.0}, r"^intrinsics: K fx = 525 px and fy = 250 px differ by a factor of 2.1; real pixels are square "
+                    r"to within 2x$"),
+    ({"cx": -5000.0}, r"^intrinsics: K principal point cx = -5000 px lies outside the 640 px wide image$"),
+    ({"cy": 480.5}, r"^intrinsics: K principal point cy = 480.5 px lies outside the 480 px high image$"),
+])
+def test_intrinsics_no_camera_has_are_refused_naming_the_value(scene, changes, message):
+    pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(up_vector=tuple(scene.up)))
+    with pytest.raises(PipelineInputError, match=message):
+        pipeline.run(scene.depth, scene.mask, replace(scene.intrinsics, **changes))
+
+
+@pytest.mark.parametrize("intrinsics", [
+    KINECT,
+    CameraIntrinsics(640, 480, 383.0, 383.0, 320.8, 238.4),  # RealSense D435 depth, 640x480
+    CameraIntrinsics(1024, 1024, 504.0, 504.0, 511.5, 511.5),  # Azure Kinect WFOV unbinned
+    CameraIntrinsics(64, 64, 525.0, 525.0, 0.0, 64.0),  # a 64 px corner crop: 7 degrees, centre on the edge
+    CameraIntrinsics(640, 240, 525.0, 262.5, 319.5, 119.5),  # 2:1 vertical binning
+])
+def test_real_cameras_pass(intrinsics):
+    check_intrinsics(intrinsics)
+
+
+def test_field_of_view_limits():
+    limits = CameraLimits()
+
+    def camera(fov_deg: float) -> CameraIntrinsics:
+        focal = 320.0 / np.tan(np.radians(fov_deg / 2))
+        return CameraIntrinsics(640, 640, focal, focal, 320.0, 320.0)
+
+    for fov in (limits.min_fov_deg * 1.01, limits.max_fov_deg * 0.99):
+        check_intrinsics(camera(fov))
+    for fov in (limits.min_fov_deg * 0.99, limits.max_fov_deg * 1.01):
+        with pytest.raises(ObservationError, match="field of view"):
+            check_intrinsics(camera(fov))
+
+
+def k_of(intrinsics: CameraIntrinsics, skew: float = 0.0) -> list[float]:
+    k = intrinsics.matrix()
+    k[0, 1] = skew
+    return k.reshape(-1).tolist()
+
+
+def p_of(intrinsics: CameraIntrinsics, tx: float = 0.0) -> list[float]:
+    return np.hstack([intrinsics.matrix(), [[tx], [0.0], [0.0]]]).reshape(-1).tolist()
+
+
+def test_camera_model_skew_r_and_p_are_checked():
+    eye = np.eye(3).reshape(-1).tolist()
+    assert check_camera_model(640, 480, k_of(KINECT), (), eye, p_of(KINECT)) == KINECT
+    # A negligible skew (at most half a pixel of shear over the image) is accepted and dropped.
+    assert check_camera_model(640, 480, k_of(KINECT, skew=1.0)) == KINECT
+    with pytest.raises(ObservationError, match=r"^K skew K\[0,1\] = 1e\+30 shifts pixels by up to 4.58e\+29 px"):
+        check_camera_model(640, 480, k_of(KINECT, skew=1e30))
+    with pytest.raises(ObservationError, match=r"^K skew K\[0,1\] = nan"):
+        check_camera_model(640, 480, k_of(KINECT, skew=float("nan")))
+    bad_k = k_of(KINECT)
+    bad_k[8] = 1000.0  # a K scaled by its last entry, not normalised
+    with pytest.raises(ObservationError, match=r"^K must have the form \[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"):
+        check_camera_model(640, 480, bad_k)
+    # R: all zeros means "not given"; otherwise a rotation (not a reflection, not a shear).
+    assert check_camera_model(640, 480, k_of(KINECT), r=[0.0] * 9) == KINECT
+    for r, what in ((np.diag([1.0, 1.0, -1.0]), "det -1"), (np.array([[1.0, 0.2, 0], [0, 1, 0], [0, 0, 1]]), "0.2")):
+        with pytest.raises(ObservationError, match=f"^R is not a rotation matrix .*{what}"):
+            check_camera_model(640, 480, k_of(KINECT), r=r.reshape(-1))
+    # P must equal K for an image that is its own rectified image (no distortion, R identity) ...
+    with pytest.raises(ObservationError, match=r"^P fx = 600 but K fx = 525: without distortion and rectification"):
+        check_camera_model(640, 480, k_of(KINECT), [0.0] * 5, eye, p_of(replace(KINECT, fx=600.0)))
+    with pytest.raises(ObservationError, match=r"^P cy = 300 but K cy = 239.5"):
+        check_camera_model(640, 480, k_of(KINECT), [], eye, p_of(replace(KINECT, cy=300.0)))
+    # ... may differ after rectification (distortion or a rotation), but must still be a camera,
+    rotated = Rotation.from_euler("y", 2.0, degrees=True).as_matrix().reshape(-1)
+    wider = p_of(replace(KINECT, fx=500.0, fy=500.0), tx=-26.0)  # a stereo pair's right camera: Tx = -fx * B
+    assert check_camera_model(640, 480, k_of(KINECT), [0.1, -0.2, 0, 0, 0], eye, wider) == KINECT
+    assert check_camera_model(640, 480, k_of(KINECT), [], rotated, wider) == KINECT
+    with pytest.raises(ObservationError, match=r"^P fx = 1e\+30 px gives a horizontal field of view"):
+        check_camera_model(640, 480, k_of(KINECT), [0.1], eye, p_of(replace(KINECT, fx=1e30)))
+    # ... with the form of a projection matrix.
+    bad_p = p_of(KINECT)
+    bad_p[11] = 1.0
+    with pytest.raises(ObservationError, match=r"^P must have the form"):
+        check_camera_model(640, 480, k_of(KINECT), [], eye, bad_p)
+    with pytest.raises(ObservationError, match=r"^P must be 12 finite numbers"):
+        check_camera_model(640, 480, k_of(KINECT), [], eye, [float("inf")] + p_of(KINECT)[1:])
+
+
+@pytest.mark.parametrize("factor, message", [
+    (4.0, r"^the observed object spans 0.\d+ m upwards, more than the 0.194 m the 32\^3 grid of 6.25 mm voxels "
+          r"holds: too large for this model, or the depth units \(depth_scale of 16-bit images\) or the intrinsics "
+          r"are wrong$"),
+    (0.05, r"^the observed object spans only \d+.?\d* mm, less than 2 voxels \(12.5 mm\) of the grid: too small for "
+           r"this model, or the depth units \(depth_scale of 16-bit images\) or the intrinsics are wrong$"),
+])
+def test_depth_units_that_make_the_object_absurd_are_refused(scene, factor, message):
+    """Wrong depth units scale the object: a 16-bit image in 0.25 mm read as mm makes a mug 40 cm tall."""
+    config = PipelineConfig(up_vector=tuple(scene.up), min_depth=0.0, max_depth=100.0)
+    pipeline = CompletionPipeline(EchoCompleter(), config)
+    pipeline.run(scene.depth, scene.mask, scene.intrinsics)  # the right units pass
+    with pytest.raises(PipelineInputError, match=message):
+        pipeline.run(scene.depth * np.float32(factor), scene.mask, scene.intrinsics)
 
 
 def test_config_must_fit_the_model():

@@ -160,6 +160,13 @@ def bad_requests(scene):
     nan_info = intrinsics_to_camera_info(scene.intrinsics, header)
     nan_info.k[0] = float("nan")
     small_info = intrinsics_to_camera_info(CameraIntrinsics.kinect_like(320, 240), header)
+
+    def info_with(field, index, value):
+        info = intrinsics_to_camera_info(scene.intrinsics, header)
+        getattr(info, field)[index] = value
+        return info
+
+    quarter_mm = numpy_to_image(np.rint(scene.depth * 4000.0).astype(np.uint16), "16UC1", header)
     return [
         ("unknown depth encoding", request(depth__encoding="rgb8"),
          r"^depth has encoding 'rgb8'; supported: 32FC1, 16UC1, mono16$"),
@@ -183,6 +190,24 @@ def bad_requests(scene):
          r"^camera_info K matrix is all zeros \(uncalibrated camera\?\)$"),
         ("NaN intrinsics", request(camera_info=nan_info), r"^camera_info: intrinsics must be finite"),
         ("camera_info size", request(camera_info=small_info), r"^depth is 640x480 but camera_info says 320x240$"),
+        ("fx 1e30", request(camera_info=info_with("k", 0, 1e30)),
+         r"^camera_info: K fx = 1e\+30 px gives a horizontal field of view of 3.67e-26 deg over 640 px; real cameras "
+         r"have 1 to 160 deg \(corrupt calibration\?\)$"),
+        ("fx 5 px", request(camera_info=info_with("k", 0, 5.0)),
+         r"^camera_info: K fx = 5 px gives a horizontal field of view of 178 deg over 640 px"),
+        ("skew 1e30", request(camera_info=info_with("k", 1, 1e30)),
+         r"^camera_info: K skew K\[0,1\] = 1e\+30 shifts pixels by up to 4.58e\+29 px, which a pinhole model without "
+         r"skew ignores; \|skew\| must be at most 1.09 \(0.5 px\)$"),
+        ("cx outside", request(camera_info=info_with("k", 2, -5000.0)),
+         r"^camera_info: K principal point cx = -5000 px lies outside the 640 px wide image$"),
+        ("P disagrees with K", request(camera_info=info_with("p", 0, 600.0)),
+         r"^camera_info: P fx = 600 but K fx = 525: without distortion and rectification \(D zero, R identity\) "
+         r"the two must agree$"),
+        ("R not a rotation", request(camera_info=info_with("r", 0, 2.0)),
+         r"^camera_info: R is not a rotation matrix \(R R\^T differs from I by 3, det 2\)"),
+        ("depth in 0.25 mm read as mm", request(depth=quarter_mm),
+         r"^the observed object spans 0.\d+ m upwards, more than the 0.194 m the 32\^3 grid of 6.25 mm voxels holds: "
+         r"too large for this model, or the depth units \(depth_scale of 16-bit images\) or the intrinsics are wrong$"),
         ("absurd num_samples", request(num_samples=4_000_000_000),
          r"^num_samples 4000000000 is out of range: ask for 1..100 \(max_num_samples\), or 0 for the node's"),
         ("unsynchronised stamps", request(mask__header=stamped_header(51)),

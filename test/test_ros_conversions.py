@@ -118,6 +118,27 @@ def test_camera_info_round_trip_and_errors():
         camera_info_to_intrinsics(bad)
 
 
+def test_camera_info_no_camera_has_is_refused_naming_the_field():
+    """The checks are the core's (check_camera_model): K, D, R and P all come from the message."""
+    intrinsics = CameraIntrinsics.kinect_like()
+    for field, index, value, message in [
+        ("k", 0, 1e30, r"^camera_info: K fx = 1e\+30 px gives a horizontal field of view of 3.67e-26 deg"),
+        ("k", 1, 1e30, r"^camera_info: K skew K\[0,1\] = 1e\+30 shifts pixels"),
+        ("k", 2, -5000.0, r"^camera_info: K principal point cx = -5000 px lies outside the 640 px wide image$"),
+        ("k", 0, 5.0, r"^camera_info: K fx = 5 px gives a horizontal field of view of 178 deg"),
+        ("r", 1, 0.5, r"^camera_info: R is not a rotation matrix"),
+        ("p", 5, 600.0, r"^camera_info: P fy = 600 but K fy = 525"),
+    ]:
+        msg = intrinsics_to_camera_info(intrinsics)
+        getattr(msg, field)[index] = value
+        with pytest.raises(ConversionError, match=message):
+            camera_info_to_intrinsics(msg)
+    msg = intrinsics_to_camera_info(intrinsics)
+    msg.d = [0.05, -0.1, 0.0, 0.0, 0.0]  # distorted: P is the rectified camera, free to differ from K
+    msg.p[0] = msg.p[5] = 500.0
+    assert camera_info_to_intrinsics(msg) == intrinsics
+
+
 def test_pointcloud_round_trip_with_and_without_sample():
     points = RNG.normal(size=(50, 3)).astype(np.float32)
     sample = RNG.integers(0, 20, 50)
