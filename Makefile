@@ -60,3 +60,31 @@ results: setup
 	$(PSSNET) handles --models pssnet,vae,vae_gan,recgan \
 	  --checkpoints $(RUNS)/pssnet32/best.pt,$(RUNS)/vae32/best.pt,$(RUNS)/vae_gan32/best.pt,$(RUNS)/recgan32/best.pt \
 	  --data $(DATA)/test --samples 20 --out results/handles --no-progress
+
+# ---- Issue 11: data at scale, equal-budget runs, ambiguity (README "Research workflow").
+DATA_LARGE ?= data/d32_large
+STEPS ?= 14000
+SCALE_RUNS := $(RUNS)/pssnet32_large/best.pt,$(RUNS)/vae32_large/best.pt,$(RUNS)/pssnet32_small/best.pt
+SCALE_MODELS := pssnet,vae,pssnet
+SCALE_LABELS := pssnet_large,vae_large,pssnet_small
+
+datasets-large: setup
+	$(PSSNET) dataset build --family all --split train --scale large --out $(DATA_LARGE) --grid 32 --workers 2
+
+# Every run gets the same budget in optimiser steps (fair when runs share the cores), one thread each.
+train-large-%: setup
+	$(PSSNET) train --model $* --data $(DATA_LARGE)/train/mugs,$(DATA_LARGE)/train/ycb \
+	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/$*32_large --epochs 100 --max-steps $(STEPS) \
+	  --threads 1 --val-every 1000 --no-progress --seed 0
+
+# The ablation: PSSNet on the 420-object set with the same step budget.
+train-small-pssnet: setup
+	$(PSSNET) train --model pssnet --data $(DATA)/train/mugs,$(DATA)/train/ycb \
+	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/pssnet32_small --epochs 100 --max-steps $(STEPS) \
+	  --threads 1 --val-every 1000 --no-progress --seed 0
+
+# Mug views of 12 objects x 12 views of each split, for the memorisation gap (`pssnet posterior`).
+gap-data: setup
+	for split in train val test; do $(PSSNET) dataset build --family mugs --split $$split --num-objects 12 \
+	  --views 12 --out data/gap --quiet; done
+
