@@ -15,6 +15,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "pssnet_core.data.cli",
     "pssnet_core.training.cli",
     "pssnet_core.evaluation.cli",
+    "pssnet_core.trials.cli",
     "pssnet_core.bench",
 )
 

@@ -15,8 +15,9 @@ digest() { cat "$@" | sha256sum | cut -c1-16; }
 stamp_ok() { [ -f "$STAMPS/$1" ] && [ "$(cat "$STAMPS/$1")" = "$2" ]; }
 stamp_set() { mkdir -p "$STAMPS"; echo "$2" >"$STAMPS/$1"; }
 
-# 1. Debian packages: libusb for open3d's import, cmake + ninja + g++ for the interface build.
-DEB_PACKAGES=(libusb-1.0-0 cmake ninja-build g++)
+# 1. Debian packages: libusb for open3d's import, cmake + ninja + g++ for the interface build, EGL + Mesa
+#    for MuJoCo's headless offscreen rendering (MUJOCO_GL=egl; the grasp-trial filmstrips).
+DEB_PACKAGES=(libusb-1.0-0 cmake ninja-build g++ libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libgl1)
 missing=()
 for pkg in "${DEB_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

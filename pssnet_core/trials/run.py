@@ -1,0 +1,367 @@
+"""Many trials: every strategy on the same scenes, success rates with 95 % intervals, causes, filmstrips.
+
+Scene ``i`` of a scenario is drawn from ``(seed, scenario, i)`` and shown to every strategy, so the
+strategies are compared on identical views (paired). Each record is appended to ``records.jsonl`` as soon
+as it is done; a run started again with the same settings skips the (scene, strategy) pairs already there.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pssnet_core.grasps import GraspConfig
+from pssnet_core.trials import SCENARIOS, STRATEGIES
+from pssnet_core.trials.collision import Faithfulness, measure_faithfulness
+from pssnet_core.trials.physics import OUTCOMES, PhysicsConfig, PhysicsScene, TrialOutcome, build_model, run_trial
+from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory
+from pssnet_core.trials.strategies import Choice, Strategist
+
+CAUSES = ("no_grasp", *OUTCOMES[1:])  # every failure cause, in report order
+FRAME_SIZE = (240, 320)  # filmstrip frame height, width (pixels)
+
+
+@dataclass(frozen=True)
+class TrialsConfig:
+    """One run of trials.
+
+    Attributes:
+        scenarios: scenarios to run.
+        strategies: strategies to compare.
+        trials: scenes per scenario (every strategy gets each scene).
+        seed: master seed of the scenes, latent noise and candidate sampling.
+        num_samples: completions per view for PSSNet and the VAE (the node's default is 20).
+        filmstrip_scenes: scenes per scenario drawn in the filmstrip (the first ones).
+        grasps: grasp candidate and scoring options: the node's defaults, but 10 raw (anchor, orientation)
+            pairs per kept candidate instead of 3 (the clutter filter drops most of them: in the cupboard ~95 %)
+            and fingers kept 3 mm above the (known) table.
+        scenario: scene options.
+        physics: simulation options.
+    """
+
+    scenarios: tuple[str, ...] = SCENARIOS
+    strategies: tuple[str, ...] = STRATEGIES
+    trials: int = 200
+    seed: int = 0
+    num_samples: int = 20
+    filmstrip_scenes: int = 2
+    grasps: GraspConfig = field(default_factory=lambda: GraspConfig(oversample=10.0, plane_clearance=0.003))
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What decides the records (the scene count and cache location may change between runs)."""
+        data = asdict(self)
+        data.pop("trials")
+        data.pop("filmstrip_scenes")
+        data["scenario"].pop("cache_dir")
+        return json.loads(json.dumps(data, default=str))
+
+
+@dataclass
+class TrialRecord:
+    """One strategy on one scene."""
+
+    scenario: str
+    index: int
+    strategy: str
+    outcome: str
+    score: float
+    kind: str
+    width: float
+    candidates: int
+    lift: float
+    followed: float
+    contact: str
+    notes: dict[str, Any]
+
+    @property
+    def success(self) -> bool:
+        return self.outcome == "success"
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial proportion (sensible at 0 %, 100 % and small n)."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+@dataclass
+class Summary:
+    """Success rate and failure causes of one strategy in one scenario."""
+
+    scenario: str
+    strategy: str
+    n: int
+    successes: int
+    causes: dict[str, int]
+
+    @property
+    def rate(self) -> float:
+        return self.successes / self.n if self.n else float("nan")
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.n)
+
+
+def summarise(records: Iterable[TrialRecord], scenarios: tuple[str, ...], strategies: tuple[str, ...]
+              ) -> list[Summary]:
+    """One :class:`Summary` per (scenario, strategy), in the given orders."""
+    table = {(s, g): Summary(s, g, 0, 0, dict.fromkeys(CAUSES, 0)) for s in scenarios for g in strategies}
+    for r in records:
+        entry = table.get((r.scenario, r.strategy))
+        if entry is None:
+            continue
+        entry.n += 1
+        if r.success:
+            entry.successes += 1
+        else:
+            entry.causes[r.outcome] += 1
+    return list(table.values())
+
+
+def markdown_table(summaries: list[Summary]) -> str:
+    """The results table: success rate with its 95 % interval and the failure causes."""
+    lines = ["| scenario | strategy | trials | success | 95 % interval | " + " | ".join(CAUSES) + " |",
+             "|---|---|---:|---:|---|" + "---:|" * len(CAUSES)]
+    for s in summaries:
+        lo, hi = s.interval
+        rate = f"{100 * s.rate:.0f} %" if s.n else "-"
+        lines.append(f"| {s.scenario} | {s.strategy} | {s.n} | {rate} | {100 * lo:.0f}-{100 * hi:.0f} % | "
+                     + " | ".join(str(s.causes[c]) for c in CAUSES) + " |")
+    return "\n".join(lines)
+
+
+class FrameRenderer:
+    """Render callback for :func:`run_trial`: the scene from behind and above (the robot's side).
+
+    One offscreen context per trial model (creating one costs about as much as a frame); :meth:`close` it.
+    """
+
+    def __init__(self, lookat: np.ndarray) -> None:
+        self.lookat = np.asarray(lookat, dtype=np.float64)
+        self._model = None
+        self._renderer = None
+
+    def __call__(self, model, data) -> np.ndarray:
+        import mujoco
+
+        if model is not self._model:
+            self.close()
+            self._model, self._renderer = model, mujoco.Renderer(model, *FRAME_SIZE)
+        camera = mujoco.MjvCamera()
+        camera.lookat[:] = self.lookat
+        camera.distance, camera.azimuth, camera.elevation = 0.5, 215.0, -35.0
+        self._renderer.update_scene(data, camera=camera)
+        # Software GL here: shadows and reflections would double the cost of a frame and show nothing new.
+        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        return self._renderer.render().copy()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+        self._model = self._renderer = None
+
+
+@dataclass
+class SceneFilm:
+    """What the filmstrip shows of one scene.
+
+    Attributes:
+        index: scene index.
+        overview: the scene from the robot's side, without the hand.
+        depth: (H, W) the depth image the strategies saw (m).
+        mask: (H, W) its object mask.
+        notes: what was drawn.
+        trials: each strategy's record and frames (start, grasp or contact, end).
+    """
+
+    index: int
+    overview: np.ndarray
+    depth: np.ndarray
+    mask: np.ndarray
+    notes: dict[str, Any]
+    trials: list[tuple[TrialRecord, list[np.ndarray]]] = field(default_factory=list)
+
+
+def overview_frame(scene: PhysicsScene, renderer: FrameRenderer, config: TrialsConfig) -> np.ndarray:
+    """The scene without the hand (it waits 2 m above, out of the picture)."""
+    import mujoco
+
+    away = np.eye(4)
+    away[2, 3] = 2.0
+    model = build_model(scene, away, config.grasps.gripper, config.physics)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    return renderer(model, data)
+
+
+def save_filmstrip(path: Path, scenario: str, films: list[SceneFilm]) -> None:
+    """Per scene: the scene, the depth view and what was drawn; then one row per strategy that had a grasp,
+    with its start, grasp and end frames and the outcome."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sum(1 + sum(r.outcome != "no_grasp" for r, _ in f.trials) for f in films)
+    fig, axes = plt.subplots(rows, 3, figsize=(3 * 2.6, rows * 2.0 + 0.4), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    row = 0
+    for film in films:
+        axes[row, 0].imshow(film.overview)
+        axes[row, 0].set_title(f"scene {film.index} (from the robot's side)", fontsize=7, loc="left")
+        rows_px, cols_px = np.nonzero(film.mask)
+        margin = 80  # pixels of surroundings (clutter, table) around the object
+        v0, u0 = max(rows_px.min() - margin, 0), max(cols_px.min() - margin, 0)
+        window = (slice(v0, rows_px.max() + margin), slice(u0, cols_px.max() + margin))
+        axes[row, 1].imshow(np.where(film.depth > 0, film.depth, np.nan)[window], cmap="viridis")
+        axes[row, 1].contour(film.mask[window], levels=[0.5], colors="r", linewidths=0.6)
+        axes[row, 1].set_title("depth camera view (object mask in red)", fontsize=7, loc="left")
+        none = [r.strategy for r, _ in film.trials if r.outcome == "no_grasp"]
+        text = "\n".join([f"{k}: {v}" for k, v in film.notes.items()] + [f"no grasp: {', '.join(none) or '-'}"])
+        axes[row, 2].text(0.0, 1.0, text, fontsize=6, va="top", family="monospace", transform=axes[row, 2].transAxes)
+        row += 1
+        for record, frames in film.trials:
+            if record.outcome == "no_grasp":
+                continue
+            for col, frame in enumerate(frames[:3]):
+                axes[row, col].imshow(frame)
+            axes[row, 0].set_title(f"{record.strategy}: {record.outcome} ({record.kind}, score {record.score:.2f})",
+                                   fontsize=7, loc="left")
+            row += 1
+    fig.suptitle(f"{scenario}: the first scenes; frames: pre-grasp, fingers closed (or first contact), end",
+                 fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _read_records(path: Path) -> list[TrialRecord]:
+    if not path.is_file():
+        return []
+    return [TrialRecord(**json.loads(line)) for line in path.read_text().splitlines() if line.strip()]
+
+
+def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress: bool = True) -> list[TrialRecord]:
+    """Runs (or resumes) every (scene, strategy) trial; writes records, filmstrips and the summary to ``out``.
+
+    Raises:
+        ValueError: ``out`` holds records made with different settings.
+    """
+    from tqdm import tqdm
+
+    out.mkdir(parents=True, exist_ok=True)
+    settings = out / "settings.json"
+    fingerprint = config.fingerprint()
+    if settings.is_file() and json.loads(settings.read_text()) != fingerprint:
+        raise ValueError(f"{out} holds trials made with other settings; use another --out or remove it")
+    settings.write_text(json.dumps(fingerprint, indent=1))
+    records_path = out / "records.jsonl"
+    records = _read_records(records_path)
+    done = {(r.scenario, r.index, r.strategy) for r in records}
+    factory = SceneFactory(config.scenario, config.grasps.gripper)
+    bar = tqdm(total=len(config.scenarios) * config.trials * len(config.strategies), unit="trial",
+               disable=not progress, file=sys.stderr)
+    bar.update(sum(1 for s in config.scenarios for i in range(config.trials) for g in config.strategies
+                   if (s, i, g) in done))
+    with records_path.open("a") as sink:
+        for scenario in config.scenarios:
+            films: list[SceneFilm] = []
+            for index in range(config.trials):
+                film = index < config.filmstrip_scenes
+                todo = tuple(g for g in config.strategies if (scenario, index, g) not in done)
+                if not todo and not film:
+                    continue
+                scene = factory.scene(scenario, index, config.seed)
+                seed = int(np.random.default_rng([config.seed, index]).integers(2**31 - 1))
+                choices = strategist.choose(scene, config.strategies if film else todo, seed)
+                renderer = None
+                if film:
+                    renderer = FrameRenderer(scene.physics.object_pose[:3, 3] + np.array([0.0, 0.0, 0.05]))
+                    films.append(SceneFilm(index, overview_frame(scene.physics, renderer, config), scene.view.depth,
+                                           scene.view.mask, scene.notes))
+                for name, choice in choices.items():
+                    outcome = _attempt(scene.physics, choice, config, renderer)
+                    record = TrialRecord(scenario, index, name, outcome.outcome, choice.score, choice.kind,
+                                         choice.width, choice.candidates, outcome.lift, outcome.followed,
+                                         outcome.contact, scene.notes)
+                    if film:
+                        films[-1].trials.append((record, outcome.frames))
+                    if (scenario, index, name) not in done:
+                        records.append(record)
+                        done.add((scenario, index, name))
+                        sink.write(json.dumps(asdict(record)) + "\n")
+                        sink.flush()
+                        bar.update(1)
+                if renderer is not None:
+                    renderer.close()
+                bar.set_postfix_str(f"{scenario} scene {index}")
+            if films:
+                save_filmstrip(out / f"filmstrip_{scenario}.png", scenario, films)
+    bar.close()
+    used = {str(r.notes["object"]) for r in records}
+    faithfulness = {str(shape.identity): measure_faithfulness(shape, factory.parts(shape))
+                    for shape in factory.mugs + factory.boxes if str(shape.identity) in used}
+    write_summary(out / "summary.md", config, records, faithfulness)
+    return records
+
+
+def _attempt(physics_scene, choice: Choice, config: TrialsConfig, render) -> TrialOutcome:
+    if choice.pose is None:
+        return TrialOutcome("no_grasp", 0.0, 0.0)
+    return run_trial(physics_scene, choice.pose, choice.width, config.grasps.gripper, config.physics, render=render)
+
+
+def faithfulness_lines(faithfulness: dict[str, Faithfulness]) -> list[str]:
+    """Markdown lines: how faithful the collision shapes of the objects used were, per family."""
+    lines = []
+    for family in sorted({name.split("-")[0] for name in faithfulness}):
+        items = [f for name, f in faithfulness.items() if name.split("-")[0] == family]
+        volume = np.array([100 * f.volume_error for f in items])
+        extra = np.array([100 * f.extra for f in items])
+        missing = np.array([100 * f.missing for f in items])
+        parts = np.array([f.parts for f in items])
+        line = (f"- {family} ({len(items)} objects): {int(np.median(parts))} convex parts (median; "
+                f"{parts.min()}-{parts.max()}), union volume {np.median(volume):+.1f} % of the true volume "
+                f"(median; {volume.min():+.1f} to {volume.max():+.1f} %), of which extra {extra.max():.1f} % "
+                f"and missing {missing.max():.2f} % at most")
+        holes = [f for f in items if f.hole_kept is not None]
+        if holes:
+            gap_true = np.array([1000 * f.hole_gap_true for f in holes])
+            gap_parts = np.array([1000 * f.hole_gap_parts for f in holes])
+            line += (f"; handle hole kept in {sum(f.hole_kept for f in holes)}/{len(holes)}, clear gap body to "
+                     f"handle {np.median(gap_parts):.1f} mm in the parts vs {np.median(gap_true):.1f} mm true "
+                     f"(median; largest loss {np.max(gap_true - gap_parts):.1f} mm)")
+        lines.append(line)
+    return lines
+
+
+def write_summary(path: Path, config: TrialsConfig, records: list[TrialRecord],
+                  faithfulness: dict[str, Faithfulness]) -> None:
+    """The results table, the collision shapes' faithfulness and the run's settings as markdown."""
+    summaries = summarise(records, config.scenarios, config.strategies)
+    text = [f"# Grasp trials ({config.trials} scenes per scenario, seed {config.seed})", "",
+            markdown_table(summaries), "",
+            "Failure causes: no_grasp (the strategy found no grasp holding for any of its shapes), collision "
+            "(the hand touched something before closing), missed (the fingers closed without both touching the "
+            "object), slipped (held after closing, lost by the end of the exit and shake).", "",
+            f"Collision shapes (CoACD, threshold {config.scenario.decomposition.threshold}):", "",
+            *faithfulness_lines(faithfulness), "",
+            "Settings:", "", "```json", json.dumps(config.fingerprint(), indent=1), "```", ""]
+    path.write_text("\n".join(text))

@@ -1,0 +1,135 @@
+"""The strategies: each chooses one grasp from the same view, through the node's own code path.
+
+Every strategy turns a set of shapes into ranked grasps with :func:`pssnet_core.grasps.plan_grasps`, called
+on the :class:`~pssnet_core.pipeline.CompletionPipeline`'s output as the node calls it (the observation
+grid, observed points and known-occupied grid, the grasp config with the call's seed), plus what a robot
+knows of its surroundings: the scenario's clutter (the ``allowed`` filter) and the table's height (the
+support plane, instead of the node's estimate from the view, which may lie a voxel below the table). It
+takes the best-ranked grasp unless that holds for none of its shapes (then it has none):
+
+- ``pssnet``: PSSNet's samples; a grasp's score is the fraction of the samples it holds for (the product);
+- ``vae``: the VAE's samples, scored the same way;
+- ``one_completion``: PSSNet's posterior mean alone (``decode(mu) > 0.5``), one shape;
+- ``observed``: the observed voxels alone (the known-occupied grid);
+- ``oracle``: the true shape in the same grid (an upper bound: the planner's own limits remain);
+- ``random``: a uniformly random candidate among PSSNet's that hold for at least one sample (a lower bound).
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from pssnet_core.grasps import GraspConfig, GraspSet, plan_grasps
+from pssnet_core.inference import Completer
+from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineResult
+from pssnet_core.trials import STRATEGIES
+from pssnet_core.trials.physics import PhysicsConfig
+from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter
+
+
+@dataclass
+class Choice:
+    """One strategy's grasp for one scene.
+
+    Attributes:
+        strategy: the strategy's name.
+        pose: (4, 4) world <- gripper at the grasp, or None when the strategy found no grasp.
+        width: planned opening (m).
+        score: fraction of the strategy's shapes the grasp holds for (0 without a grasp).
+        kind: "top" or "side" ("" without a grasp).
+        candidates: candidates the strategy ranked (after the clutter filter).
+    """
+
+    strategy: str
+    pose: np.ndarray | None
+    width: float = 0.0
+    score: float = 0.0
+    kind: str = ""
+    candidates: int = 0
+
+
+def posterior_mean(completer: Completer, result: PipelineResult) -> np.ndarray:
+    """(1, N, N, N) bool: the model's posterior-mean completion of the pipeline's observation."""
+    x = torch.from_numpy(result.observation.network_input())[None]
+    with torch.inference_mode(), completer.ctx.autocast():
+        logits = completer.model.reconstruct(x)
+    return (torch.sigmoid(logits.float())[0, 0] > 0.5).cpu().numpy()[None]
+
+
+class Strategist:
+    """Runs the strategies on a scene.
+
+    Args:
+        pssnet: the PSSNet completer (also the posterior mean and the random baseline's candidates).
+        vae: the VAE completer, or None (then the ``vae`` strategy cannot be asked for).
+        grasps: grasp candidate and scoring options (the node's).
+        num_samples: completions drawn per view for PSSNet and the VAE.
+        physics: for the pre-grasp distance the clutter filter checks.
+        clutter_margin: clearance the planner keeps from the clutter (m).
+    """
+
+    def __init__(self, pssnet: Completer, vae: Completer | None, grasps: GraspConfig, num_samples: int,
+                 physics: PhysicsConfig, clutter_margin: float) -> None:
+        self.pipelines = {"pssnet": CompletionPipeline(pssnet, PipelineConfig(num_samples=num_samples, grasps=grasps))}
+        if vae is not None:
+            self.pipelines["vae"] = CompletionPipeline(vae, PipelineConfig(num_samples=num_samples, grasps=grasps))
+        self.pssnet = pssnet
+        self.grasps = grasps
+        self.physics = physics
+        self.clutter_margin = clutter_margin
+
+    def _complete(self, name: str, scene: TrialScene, seed: int) -> PipelineResult:
+        pipeline = self.pipelines[name]
+        pipeline.config = pipeline.with_config(up_vector=tuple(float(u) for u in scene.view.up), seed=seed)
+        view = scene.view
+        return pipeline.run(view.depth, view.mask, view.intrinsics, compute_grasps=False)
+
+    def _plan(self, occupancy: np.ndarray, result: PipelineResult, scene: TrialScene, seed: int) -> GraspSet:
+        observation = result.observation
+        allowed = allowed_by_clutter(scene, observation.pose, self.grasps.gripper, self.physics, self.clutter_margin)
+        return plan_grasps(occupancy, observation.pose, observation.points, replace(self.grasps, seed=seed),
+                           known_occupied=observation.known_occupied, allowed=allowed,
+                           support_z=scene.table_height(observation.pose))
+
+    @staticmethod
+    def _choice(name: str, grasps: GraspSet, index: int | None, camera_pose: np.ndarray) -> Choice:
+        if index is None or len(grasps) == 0 or grasps.scores[index] <= 0.0:
+            return Choice(name, None, candidates=len(grasps))
+        return Choice(name, camera_pose @ grasps.poses[index], float(grasps.widths[index]),
+                      float(grasps.scores[index]), str(grasps.kinds[index]), len(grasps))
+
+    def choose(self, scene: TrialScene, strategies: tuple[str, ...], seed: int) -> dict[str, Choice]:
+        """Each strategy's grasp for ``scene``; ``seed`` seeds the latent noise, candidates and the random pick."""
+        unknown = set(strategies) - set(STRATEGIES)
+        if unknown:
+            raise ValueError(f"unknown strategies {sorted(unknown)}; expected some of {STRATEGIES}")
+        if "vae" in strategies and "vae" not in self.pipelines:
+            raise ValueError("the vae strategy needs a VAE checkpoint")
+        camera = scene.view.camera_pose
+        result = self._complete("pssnet", scene, seed)
+        observation = result.observation
+        choices: dict[str, Choice] = {}
+        pssnet_grasps = None
+        if "pssnet" in strategies or "random" in strategies:
+            pssnet_grasps = self._plan(result.occupancy, result, scene, seed)
+        for name in strategies:
+            if name == "pssnet":
+                choices[name] = self._choice(name, pssnet_grasps, 0, camera)
+            elif name == "random":
+                holding = np.flatnonzero(pssnet_grasps.scores > 0.0)
+                rng = np.random.default_rng([seed, zlib.crc32(b"random")])
+                pick = int(rng.choice(holding)) if len(holding) else None
+                choices[name] = self._choice(name, pssnet_grasps, pick, camera)
+            elif name == "vae":
+                vae = self._complete("vae", scene, seed)
+                choices[name] = self._choice(name, self._plan(vae.occupancy, vae, scene, seed), 0, camera)
+            else:
+                shapes = {"one_completion": lambda: posterior_mean(self.pssnet, result),
+                          "observed": lambda: observation.known_occupied[None],
+                          "oracle": lambda: scene.ground_truth(observation.pose)[None]}[name]()
+                choices[name] = self._choice(name, self._plan(shapes, result, scene, seed), 0, camera)
+        return choices

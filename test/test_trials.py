@@ -1,0 +1,238 @@
+"""Grasp trials in MuJoCo: the trial sequence and its failure causes, the clutter filter, the scenes, a short run.
+
+Only boxes are used here (their CoACD decomposition takes milliseconds; a mug's takes ~10 s): the mug's
+decomposition faithfulness is checked on a plain convex hull (which must lose the handle's hole) and, in
+the slow test, on CoACD itself.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+from pssnet_core.cli import build_parser
+from pssnet_core.data.scenes import object_pose
+from pssnet_core.geometry import GridPose
+from pssnet_core.grasps import GraspConfig, GripperConfig, plan_grasps
+from pssnet_core.inference import Completer
+from pssnet_core.shapes import make_shape
+from pssnet_core.trials.collision import ConvexPart, decompose, measure_faithfulness
+from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, run_trial
+from pssnet_core.trials.run import TrialsConfig, run_trials, wilson_interval
+from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory, clear_of_clutter
+from pssnet_core.trials.strategies import Strategist
+
+GRIPPER = GripperConfig()
+
+
+def _pose(origin, closing, approach) -> np.ndarray:
+    """World <- gripper with the given origin, closing axis (y) and approach axis (z)."""
+    z, y = np.asarray(approach, float), np.asarray(closing, float)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([np.cross(y, z), y, z], axis=1)
+    pose[:3, 3] = origin
+    return pose
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("coacd")
+
+
+@pytest.fixture(scope="module")
+def brick(cache) -> PhysicsScene:
+    """A held-out 7.5 x 4.5 x 5 cm box (test split) standing at the origin."""
+    shape = make_shape("box", 2000013)
+    return PhysicsScene(shape, decompose(shape.mesh, cache_dir=cache), object_pose(shape.mesh))
+
+
+@pytest.fixture(scope="module")
+def factory(cache) -> SceneFactory:
+    return SceneFactory(ScenarioConfig(mugs=1, boxes=3, cache_dir=cache))
+
+
+@pytest.fixture(scope="module")
+def strategist() -> Strategist:
+    config = TrialsConfig()
+    return Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, 4, config.physics,
+                      config.scenario.clutter_margin)
+
+
+def _top_grasp(scene: PhysicsScene, depth: float = 0.02, dx: float = 0.0) -> np.ndarray:
+    top = float(scene.shape.mesh.extents[2])
+    return _pose([dx, 0.0, top - depth], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0])
+
+
+def test_top_grasp_across_the_narrow_side_lifts_the_box(brick):
+    result = run_trial(brick, _top_grasp(brick), 0.055)
+    assert result.outcome == "success"
+    assert result.lift == pytest.approx(0.15, abs=0.02) and result.followed > 0.9
+
+
+def test_a_grasp_in_empty_air_fails_as_missed(brick):
+    result = run_trial(brick, _top_grasp(brick, dx=0.3), 0.055)
+    assert result.outcome == "missed" and abs(result.lift) < 1e-3
+
+
+def test_an_approach_through_the_object_fails_as_a_collision(brick):
+    # Fingers 2 cm apart coming down onto a 4.5 cm wide box: they hit its top before closing.
+    result = run_trial(brick, _top_grasp(brick), 0.02)
+    assert result.outcome == "collision" and result.contact == "object"
+
+
+def test_touching_the_clutter_on_the_way_in_is_a_collision(brick):
+    top = float(brick.shape.mesh.extents[2])
+    shelf = ClutterBox(centre=(0.0, 0.0, top + 0.06), half=(0.1, 0.1, 0.01), name="shelf")
+    result = run_trial(replace(brick, clutter=(shelf,)), _top_grasp(brick), 0.055)
+    assert result.outcome == "collision" and result.contact.startswith("clutter0")
+
+
+def test_a_grasp_too_weak_for_the_shake_slips(brick):
+    weak = replace(PhysicsConfig(), grip_force=0.5, finger_friction=0.2, object_friction=0.2)
+    assert run_trial(brick, _top_grasp(brick), 0.055, config=weak).outcome == "slipped"
+
+
+def test_same_inputs_give_the_same_outcome_bit_for_bit(brick):
+    grasp = _top_grasp(brick, depth=0.01)
+    first, second = run_trial(brick, grasp, 0.055), run_trial(brick, grasp, 0.055)
+    assert (first.outcome, first.lift, first.followed) == (second.outcome, second.lift, second.followed)
+
+
+def test_hand_and_object_model_follow_the_gripper_and_the_true_mesh(brick):
+    import mujoco  # after pssnet_core.trials, which picks the headless EGL backend for the short run's frames
+
+    from pssnet_core.trials.physics import build_model
+
+    config = PhysicsConfig()
+    model = build_model(brick, _top_grasp(brick), GRIPPER, config)
+    volume = brick.shape.mesh.volume
+    assert model.body("object").mass[0] == pytest.approx(400.0 * volume)
+    palm = model.geom("palm")
+    assert 2 * palm.size[1] == pytest.approx(GRIPPER.max_opening + 2 * GRIPPER.finger_thickness)
+    finger = model.geom("finger_left")
+    assert 2 * finger.size == pytest.approx([GRIPPER.finger_width, GRIPPER.finger_thickness, GRIPPER.finger_length])
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    # The hand starts 10 cm back along the approach (up, for a top grasp).
+    start = data.xpos[model.body("hand").id]
+    assert start[2] == pytest.approx(float(brick.shape.mesh.extents[2]) - 0.02 + config.pre_grasp)
+
+
+def test_convex_decomposition_faithfulness_numbers():
+    box = make_shape("box", 2000013)
+    lo, hi = box.bounds
+    mid = 0.5 * (lo[0] + hi[0])
+    halves = []
+    for a, b in ((lo[0], mid), (mid, hi[0])):
+        half = trimesh.creation.box(bounds=[[a, lo[1], lo[2]], [b, hi[1], hi[2]]])
+        halves.append(ConvexPart(np.asarray(half.vertices), np.asarray(half.faces)))
+    exact = measure_faithfulness(box, halves)
+    assert exact.parts == 2 and abs(exact.volume_error) < 1e-6 and exact.hole_kept is None
+    mug = make_shape("mug", 2000002)
+    hull = mug.mesh.convex_hull
+    coarse = measure_faithfulness(mug, [ConvexPart(np.asarray(hull.vertices), np.asarray(hull.faces))])
+    assert coarse.volume_error > 1.0 and coarse.hole_kept is False and coarse.hole_gap_parts == 0.0
+    assert coarse.hole_gap_true == pytest.approx(mug.attributes["handle_reach"] - mug.attributes["handle_thickness"],
+                                                 abs=0.002)
+
+
+@pytest.mark.slow
+def test_coacd_keeps_the_mug_volume_and_its_handle_hole(tmp_path):
+    mug = make_shape("mug", 2000002)
+    faithful = measure_faithfulness(mug, decompose(mug.mesh, cache_dir=tmp_path))
+    assert abs(faithful.volume_error) < 0.04 and faithful.hole_kept
+    assert faithful.hole_gap_parts > 0.8 * faithful.hole_gap_true
+
+
+def test_clutter_filter_checks_the_whole_hand_motion():
+    config = PhysicsConfig()
+    # A top grasp at 5 cm: fingers span z 0.05-0.10 and the palm 0.10-0.12; at the pre-grasp pose (10 cm up)
+    # the palm spans 0.20-0.22, and a 15 cm exit upwards takes it to 0.25-0.27.
+    down = _pose([0.0, 0.0, 0.05], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0])
+    beside = ClutterBox(centre=(0.0, 0.2, 0.05), half=(0.05, 0.05, 0.05))
+    at_the_start = ClutterBox(centre=(0.0, 0.0, 0.2), half=(0.05, 0.05, 0.01))
+    in_the_way_out = ClutterBox(centre=(0.0, 0.0, 0.245), half=(0.05, 0.05, 0.01))
+    poses, widths = down[None], np.array([0.05])
+
+    def clear(box, exit_path=((0.0, 0.0, 0.15),)):
+        return bool(clear_of_clutter(poses, widths, (box,), exit_path, GRIPPER, config, margin=0.005)[0])
+
+    assert clear(beside)
+    assert not clear(in_the_way_out)
+    assert clear(in_the_way_out, exit_path=((0.2, 0.0, 0.0),))
+    assert not clear(at_the_start, exit_path=((0.2, 0.0, 0.0),))
+    # A block 8 cm tall, 1 cm beside the fingers (and below the wider palm): clear, but not with a 2 cm margin.
+    side = ClutterBox(centre=(0.0, 0.025 + 0.01 + 0.01 + 0.05, 0.04), half=(0.05, 0.05, 0.04))
+    assert clear(side)
+    assert not bool(clear_of_clutter(poses, widths, (side,), ((0.0, 0.0, 0.15),), GRIPPER, config, margin=0.02)[0])
+
+
+def test_plan_grasps_keeps_only_the_allowed_candidates():
+    pose = GridPose(rotation=np.eye(3), origin=np.zeros(3), voxel_size=0.00625, size=32)
+    occupancy = np.zeros((1, 32, 32, 32), dtype=bool)
+    occupancy[0, 12:20, 13:19, 0:12] = True  # a 5 x 3.75 x 7.5 cm block on the plane z = 0
+    everything = plan_grasps(occupancy, pose, None, GraspConfig(), support_z=0.0)
+    assert set(everything.kinds) == {"top", "side"}
+    sides = plan_grasps(occupancy, pose, None, GraspConfig(), support_z=0.0, allowed=lambda c: c.kinds == 1)
+    assert len(sides) > 0 and set(sides.kinds) == {"side"}
+    assert len(plan_grasps(occupancy, pose, None, GraspConfig(), support_z=0.0,
+                           allowed=lambda c: np.zeros(len(c), bool))) == 0
+
+
+def test_scenes_are_deterministic_and_the_slit_hides_the_box_depth(factory):
+    first, again = factory.scene("box_slit", 0, seed=3), factory.scene("box_slit", 0, seed=3)
+    assert np.array_equal(first.view.depth, again.view.depth) and first.notes == again.notes
+    assert first.notes["object"].startswith("box-2")  # a test-split object
+    view = first.view
+    seen_columns = np.flatnonzero(view.mask.any(axis=0))
+    # Only a slit of about 3.6 cm at the box's depth shows the box.
+    assert (seen_columns[-1] - seen_columns[0] + 1) * view.object_depth / view.intrinsics.fx < 0.045
+    assert first.notes["occluded"] > 0.2 and [b.name for b in first.physics.clutter] == ["block", "block", "wall"]
+    other = factory.scene("box_slit", 0, seed=4)
+    assert not np.array_equal(first.view.depth, other.view.depth)
+
+
+def test_the_oracle_lifts_a_box_in_full_view(factory, strategist):
+    scene = factory.scene("control", 0)  # even control scenes show a box
+    assert scene.physics.shape.identity.family == "box" and not scene.physics.clutter
+    choice = strategist.choose(scene, ("oracle",), seed=0)["oracle"]
+    assert choice.pose is not None and choice.score == 1.0
+    assert run_trial(scene.physics, choice.pose, choice.width).outcome == "success"
+
+
+def test_a_short_run_writes_records_summary_and_filmstrip_and_resumes(factory, strategist, tmp_path, cache):
+    strategies = ("pssnet", "one_completion", "observed", "oracle", "random")
+    config = TrialsConfig(scenarios=("box_slit", "control"), strategies=strategies, trials=1, filmstrip_scenes=1,
+                          scenario=ScenarioConfig(mugs=1, boxes=3, cache_dir=cache))
+    records = run_trials(config, strategist, tmp_path, progress=False)
+    assert len(records) == 2 * len(strategies)
+    assert {r.outcome for r in records} <= {"success", "no_grasp", "collision", "missed", "slipped"}
+    lines = (tmp_path / "records.jsonl").read_text().splitlines()
+    assert len(lines) == len(records) and json.loads(lines[0])["scenario"] == "box_slit"
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| control | oracle | 1 |" in summary and "- box (" in summary
+    assert (tmp_path / "filmstrip_box_slit.png").stat().st_size > 10_000
+    # Run again: nothing new to do, the records stay as they were.
+    assert len(run_trials(config, strategist, tmp_path, progress=False)) == len(records)
+    assert len((tmp_path / "records.jsonl").read_text().splitlines()) == len(records)
+    with pytest.raises(ValueError, match="other settings"):
+        run_trials(replace(config, seed=1), strategist, tmp_path, progress=False)
+
+
+def test_wilson_interval():
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)
+    assert wilson_interval(10, 10) == pytest.approx((0.7225, 1.0), abs=1e-4)
+    assert wilson_interval(50, 100) == pytest.approx((0.4038, 0.5962), abs=1e-4)
+
+
+def test_the_command_is_registered_with_its_options():
+    args = build_parser().parse_args(["grasp-trials", "--trials", "3", "--strategies", "oracle,random",
+                                      "--scenarios", "control"])
+    assert args.trials == 3 and args.strategies == ("oracle", "random") and args.scenarios == ("control",)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["grasp-trials", "--scenarios", "kitchen"])
+    assert args.func(build_parser().parse_args(["grasp-trials", "--strategies", "vae"])) == 2  # no VAE checkpoint
