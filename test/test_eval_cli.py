@@ -113,6 +113,36 @@ def test_bad_inputs(tiny_data, tiny_checkpoint, tmp_path, capsys):
     assert main(["plausible", "--data", str(tiny_data), "--sets", "cats"]) == 2
     with pytest.raises(ValueError, match="checkpoints for"):
         resolve_checkpoints(["vae", "recgan"], str(tiny_checkpoint / "vae.pt"))
+    vae = str(tiny_checkpoint / "vae.pt")
+    common = ["--data", str(tiny_data), "--out", str(tmp_path), "--no-progress"]
+    assert main(["evaluate", "--models", "vae,vae", "--checkpoints", f"{vae},{vae}", *common]) == 2
+    assert "must differ" in capsys.readouterr().err
+    assert main(["evaluate", "--models", "vae", "--checkpoints", vae, "--model-box-temperatures", "1,2",
+                 *common]) == 2
+    assert "2 box temperatures for 1 models" in capsys.readouterr().err
+    assert main(["evaluate", "--models", "vae", "--checkpoints", vae, "--model-box-temperatures", "2",
+                 *common]) == 2
+    assert "no box latent" in capsys.readouterr().err
+
+
+def test_evaluate_applies_each_models_box_temperature(tiny_data, tmp_path, monkeypatch):
+    from pssnet_core.evaluation import cli as eval_cli
+    from pssnet_core.models.registry import build_model, default_config
+    from pssnet_core.training.checkpoint import save_checkpoint
+
+    ckpt = save_checkpoint(tmp_path / "p.pt", build_model(default_config("pssnet", grid_size=16, channels=[4, 8, 8, 8],
+                                                                        flow_hidden=16, flow_couplings=2)))
+    seen = {}
+
+    def record(args, completers):  # stands in for the evaluation: what temperature does each completer carry?
+        seen.update({m: c.box_temperature for m, c in completers.items()})
+        (Path(args.out) / "results.md").write_text("")
+        return {}
+
+    monkeypatch.setattr(eval_cli, "run_evaluation", record)
+    assert main(["evaluate", "--models", "plain,warm", "--checkpoints", f"{ckpt},{ckpt}", "--data", str(tiny_data),
+                 "--model-box-temperatures", "1,1.5", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert seen == {"plain": 1.0, "warm": 1.5}
 
 
 def test_dense_mug_views_pick_a_full_turn_of_the_first_handled_mugs():

@@ -88,6 +88,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--plot-mugs", type=int, default=3, help="mugs in the coverage-vs-rotation plot")
+    e.add_argument("--model-box-temperatures", type=_floats, default=None,
+                   help="one box temperature per model, comma separated (PSSNet's box sigma factor; 1 for models "
+                        "without a box part); default 1 for all. The same checkpoint may appear twice under two "
+                        "names to compare temperatures")
     e.set_defaults(func=_guard(_evaluate_command))
 
     h = subparsers.add_parser(
@@ -364,10 +368,19 @@ def run_evaluation(args: argparse.Namespace, completers: dict[str, Any]) -> dict
 
 
 def _evaluate_command(args: argparse.Namespace) -> int:
-    models = [m.strip() for m in args.models.split(",") if m.strip()]
-    if not models:
-        raise EvaluationCliError("--models is empty")
+    from pssnet_core.models.base import check_box_temperature
+
+    models = _models(args.models)
+    temperatures = args.model_box_temperatures or (1.0,) * len(models)
+    if len(temperatures) != len(models):
+        raise EvaluationCliError(f"{len(temperatures)} box temperatures for {len(models)} models")
     completers = load_completers(models, args.checkpoints, args.device, args.threads)
+    for model, temperature in zip(models, temperatures, strict=True):
+        try:
+            completers[model].box_temperature = check_box_temperature(
+                temperature, getattr(completers[model].model, "box_dim", 0) > 0)
+        except ValueError as error:
+            raise EvaluationCliError(f"{model}: {error}") from error
     files = run_evaluation(args, completers)
     print((Path(args.out) / "results.md").read_text())
     print("wrote " + ", ".join(str(p) for p in files.values()))
@@ -468,6 +481,8 @@ def _models(text: str) -> list[str]:
     models = [m.strip() for m in text.split(",") if m.strip()]
     if not models:
         raise EvaluationCliError("--models is empty")
+    if len(set(models)) != len(models):  # names key the results: a repeated one would hide a model
+        raise EvaluationCliError(f"--models names must differ (they label the results), got {text!r}")
     return models
 
 
