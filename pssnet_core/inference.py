@@ -80,7 +80,8 @@ class Completer:
         fast: channels_last_3d + bf16 autocast where native; False = plain fp32 eager (reference).
         info: checkpoint metadata (``extra``), kept for callers.
         box_temperature: default factor on the posterior sigma of the box latent dims (PSSNet; 1.0 = the
-            trained posterior); :meth:`complete` may override it per call.
+            trained posterior); :meth:`complete` may override it per call. :meth:`from_checkpoint` takes the
+            value calibrated with the model (recorded by ``pssnet export-model --box-temperature``).
     """
 
     def __init__(self, model: CompletionModel, config: ModelConfig, device: str | torch.device = "cpu",
@@ -107,7 +108,8 @@ class Completer:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str | torch.device = "cpu",
-                        threads: int | None = None, fast: bool = True, box_temperature: float = 1.0) -> Completer:
+                        threads: int | None = None, fast: bool = True,
+                        box_temperature: float | None = None) -> Completer:
         """Loads a checkpoint (``weights_only``); ``path`` None loads the shipped default 32^3 PSSNet.
 
         Raises:
@@ -122,6 +124,8 @@ class Completer:
                     f"`pssnet export-model runs/pssnet32/best.pt {path}`, or pass a checkpoint path")
         model, config, extra = load_checkpoint(path, map_location="cpu")
         extra["path"] = str(path)
+        if box_temperature is None:  # the temperature calibrated with the model, else the trained posterior
+            box_temperature = float(extra.get("box_temperature", 1.0))
         return cls(model, config, device=device, threads=threads, fast=fast, info=extra,
                    box_temperature=box_temperature)
 

@@ -70,6 +70,8 @@ class PipelineConfig:
             replaced by each call's latent seed).
         grasp_top_k: grasps returned, best first.
         grasp_min_score: grasps holding for a smaller fraction of the completions are not returned.
+        box_temperature: factor on the posterior sigma of PSSNet's box latent (wider: more diverse hidden
+            parts); 0 = the value calibrated with the model (its checkpoint's, else 1).
     """
 
     num_samples: int = 20
@@ -91,6 +93,7 @@ class PipelineConfig:
     grasps: GraspConfig = field(default_factory=GraspConfig)
     grasp_top_k: int = 10
     grasp_min_score: float = 0.0
+    box_temperature: float = 0.0
 
     def __post_init__(self) -> None:
         if not 1 <= self.num_samples <= self.max_num_samples:
@@ -109,6 +112,8 @@ class PipelineConfig:
             raise ValueError("min_mask_pixels and min_valid_points must be >= 1")
         if not self.min_object_voxels >= 0:
             raise ValueError(f"min_object_voxels must be >= 0, got {self.min_object_voxels}")
+        if not (self.box_temperature == 0.0 or 0.0 < self.box_temperature <= 10.0):
+            raise ValueError(f"box_temperature must be 0 (the model's) or in (0, 10], got {self.box_temperature}")
         if self.grasp_top_k < 1 or not 0.0 <= self.grasp_min_score <= 1.0:
             raise ValueError(f"grasp_top_k must be >= 1 and grasp_min_score in [0, 1], got {self.grasp_top_k} and "
                              f"{self.grasp_min_score}")
@@ -210,6 +215,9 @@ class CompletionPipeline:
             raise ValueError(f"voxel_size {voxel} m differs from the {self.model_voxel_size} m the model was "
                              "trained with; set it to 0 to use the model's")
         self.grid_config(config)
+        has_box = getattr(getattr(self.completer, "model", None), "box_dim", 0) > 0
+        if config.box_temperature not in (0.0, 1.0) and not has_box:
+            raise ValueError(f"box_temperature {config.box_temperature}: this model has no box latent; use 0 or 1")
 
     def voxel_size_for(self, config: PipelineConfig) -> float:
         if config.voxel_size > 0:
@@ -303,7 +311,8 @@ class CompletionPipeline:
         with self._lock:
             seed = config.seed if config.seed >= 0 else int(self._seed_rng.integers(0, 2**31 - 1))
             try:
-                completion = self.completer.complete(observation, num_samples=n, seed=seed)
+                completion = self.completer.complete(observation, num_samples=n, seed=seed,
+                                                     box_temperature=config.box_temperature or None)
             except CompletionInputError as error:
                 raise PipelineInputError(str(error)) from error
         t2 = time.perf_counter()

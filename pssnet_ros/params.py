@@ -107,6 +107,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("num_samples", 20, "completions per call when the request says 0 (and in continuous mode)", 1, 1000,
               constraints="<= max_num_samples"),
     ParamSpec("max_num_samples", 100, "requests asking for more samples are rejected", 1, 1000),
+    ParamSpec("box_temperature", 0.0, "factor on the posterior sigma of PSSNet's box latent (wider = more diverse "
+              "hidden sides); 0 = the value calibrated with the model", 0.0, 10.0,
+              constraints="0 or 1 for models without a box part"),
     ParamSpec("seed", 0, "latent-noise seed: the same input gives the same completions; -1 = a fresh seed per "
               "call", -1, INT32_MAX),
     ParamSpec("voxel_size", 0.0, "grid voxel size in metres; 0 = the model's training voxel size", 0.0, 0.1,
@@ -230,6 +233,7 @@ def pipeline_config(values: dict[str, Any]) -> PipelineConfig:
         support_plane_max_tilt_deg=float(values["support_plane_max_tilt_deg"]),
         min_depth=float(values["min_depth"]), max_depth=float(values["max_depth"]),
         min_mask_pixels=int(values["min_mask_pixels"]), min_valid_points=int(values["min_valid_points"]),
+        box_temperature=float(values["box_temperature"]),
         grasps=GraspConfig(
             gripper=GripperConfig(max_opening=float(values["grasp_max_opening"]),
                                   finger_length=float(values["grasp_finger_length"]),

@@ -100,6 +100,18 @@ def test_box_temperature_is_a_completer_default_that_a_call_overrides(tmp_path):
         Completer.from_checkpoint(checkpoint(tmp_path, "vae"), box_temperature=2.0)
 
 
+def test_an_export_carries_its_calibrated_box_temperature(tmp_path):
+    from pssnet_core.training.checkpoint import export_checkpoint
+
+    shipped = export_checkpoint(checkpoint(tmp_path), tmp_path / "ship.pt", box_temperature=1.5)
+    assert Completer.from_checkpoint(shipped).box_temperature == 1.5
+    assert Completer.from_checkpoint(shipped, box_temperature=1.0).box_temperature == 1.0
+    assert Completer.from_checkpoint(export_checkpoint(shipped, tmp_path / "plain.pt")).box_temperature == 1.5
+    assert Completer.from_checkpoint(checkpoint(tmp_path)).box_temperature == 1.0
+    with pytest.raises(CheckpointError, match="no box latent"):
+        export_checkpoint(checkpoint(tmp_path, "vae"), tmp_path / "v.pt", box_temperature=2.0)
+
+
 def test_missing_default_checkpoint_says_how_to_train(tmp_path, monkeypatch):
     monkeypatch.setattr(inference, "DEFAULT_CHECKPOINT", tmp_path / "absent.pt")
     with pytest.raises(CheckpointError, match="pssnet train"):

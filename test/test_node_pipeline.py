@@ -33,9 +33,12 @@ class EchoCompleter:
         self.model_name = "echo"
         self.info = {"voxel_size": voxel_size} if voxel_size else {}
         self.calls: list[tuple[int, int]] = []
+        self.box_temperatures: list[float | None] = []
 
-    def complete(self, observation, num_samples: int, seed: int) -> CompletionResult:
+    def complete(self, observation, num_samples: int, seed: int, box_temperature: float | None = None
+                 ) -> CompletionResult:
         self.calls.append((num_samples, seed))
+        self.box_temperatures.append(box_temperature)
         occupancy = np.repeat(observation.known_occupied[None], num_samples, axis=0)
         return CompletionResult(occupancy.astype(np.float32), occupancy, self.grid_size, seed, "echo", 0.0)
 
@@ -269,7 +272,8 @@ class TruthCompleter(EchoCompleter):
         super().__init__()
         self.view, self.shape = view, shape
 
-    def complete(self, observation, num_samples: int, seed: int) -> CompletionResult:
+    def complete(self, observation, num_samples: int, seed: int, box_temperature: float | None = None
+                 ) -> CompletionResult:
         from pssnet_core.data.scenes import ground_truth_occupancy
 
         truth = ground_truth_occupancy(self.shape, self.view.object_pose, observation.pose, self.view.camera_pose)
@@ -296,3 +300,16 @@ def test_grasps_are_ranked_camera_frame_poses_around_the_object(scene):
     assert pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=False).grasps is None
     strict = CompletionPipeline(TruthCompleter(scene, shape), replace(config, grasp_min_score=1.0, grasp_top_k=100))
     assert np.all(strict.run(scene.depth, scene.mask, scene.intrinsics).grasps.scores == 1.0)
+
+
+def test_box_temperature_reaches_the_model_and_zero_means_the_models_own(scene, tiny_pipeline):
+    echo = EchoCompleter()
+    pipeline = CompletionPipeline(echo, PipelineConfig(num_samples=2, up_vector=tuple(scene.up)))
+    pipeline.run(scene.depth, scene.mask, scene.intrinsics)
+    assert echo.box_temperatures == [None]  # 0: the completer's default (calibrated with the model)
+    with pytest.raises(ValueError, match="no box latent"):  # the echo model has no box part
+        pipeline.check_config(PipelineConfig(box_temperature=1.5))
+    with pytest.raises(ValueError, match="box_temperature"):
+        PipelineConfig(box_temperature=-1.0)
+    pipeline.check_config(PipelineConfig(box_temperature=1.0))
+    tiny_pipeline.check_config(PipelineConfig(box_temperature=1.5))  # PSSNet: any temperature in range

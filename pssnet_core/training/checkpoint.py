@@ -124,12 +124,21 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
 
 
 def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
-                      inference_only: bool = True) -> Path:
+                      inference_only: bool = True, box_temperature: float | None = None) -> Path:
     """Compact copy of a checkpoint for shipping: fp16 weights, training-only modules and state dropped.
 
     The training metadata in ``extra`` (metrics, data, duration) is kept; optimiser states are not.
+    ``box_temperature`` records the temperature calibrated for this model (``extra["box_temperature"]``), the
+    default of every :class:`pssnet_core.inference.Completer` that loads it.
     """
+    from pssnet_core.models.base import ModelInputError, check_box_temperature
+
     model, config, extra = load_checkpoint(src)
     kept = {k: v for k, v in extra.items() if k not in ("optimizers", "rng", "inference_only", "storage_dtype")}
     kept["exported_from"] = str(src)
+    if box_temperature is not None:
+        try:
+            kept["box_temperature"] = check_box_temperature(box_temperature, getattr(model, "box_dim", 0) > 0)
+        except ModelInputError as error:
+            raise CheckpointError(str(error)) from error
     return save_checkpoint(dst, model, config, kept, half=half, inference_only=inference_only)

@@ -56,6 +56,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("src", help="checkpoint written by `pssnet train` (best.pt)")
     e.add_argument("dst", help="output file, e.g. pssnet_core/checkpoints/default_pssnet_32.pt")
     e.add_argument("--fp32", action="store_true", help="keep float32 weights")
+    e.add_argument("--box-temperature", type=float, default=None,
+                   help="record the box temperature calibrated for this model (PSSNet; the default of its users)")
     e.add_argument("--keep-training-modules", action="store_true",
                    help="keep the flow / discriminator (needed to fine-tune from the export)")
     e.set_defaults(func=_export)
@@ -158,7 +160,7 @@ def _train(args: argparse.Namespace) -> int:
 def _export(args: argparse.Namespace) -> int:
     try:
         path = export_checkpoint(args.src, args.dst, half=not args.fp32,
-                                 inference_only=not args.keep_training_modules)
+                                 inference_only=not args.keep_training_modules, box_temperature=args.box_temperature)
         read_checkpoint(path)
     except CheckpointError as error:
         print(f"pssnet export-model: error: {error}", file=sys.stderr)
