@@ -22,7 +22,7 @@ from pssnet_core.inference import Completer
 from pssnet_core.shapes import make_shape
 from pssnet_core.trials.collision import ConvexPart, decompose, measure_faithfulness
 from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, run_trial
-from pssnet_core.trials.run import TrialsConfig, run_trials, wilson_interval
+from pssnet_core.trials.run import TrialRecord, TrialsConfig, paired_lines, run_trials, wilson_interval
 from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory, clear_of_clutter
 from pssnet_core.trials.strategies import Strategist
 
@@ -221,6 +221,19 @@ def test_a_short_run_writes_records_summary_and_filmstrip_and_resumes(factory, s
     assert len((tmp_path / "records.jsonl").read_text().splitlines()) == len(records)
     with pytest.raises(ValueError, match="other settings"):
         run_trials(replace(config, seed=1), strategist, tmp_path, progress=False)
+
+
+def test_paired_comparison_counts_the_scenes_only_one_strategy_lifted():
+    def record(index, strategy, outcome):
+        return TrialRecord("box_slit", index, strategy, outcome, 1.0, "top", 0.05, 10, 0.15, 1.0, "", {})
+
+    records = [record(i, "pssnet", "success") for i in range(10)]
+    records += [record(i, "one_completion", "missed" if i < 8 else "success") for i in range(10)]
+    records += [record(i, "oracle", "success") for i in range(10)]
+    (line,) = paired_lines(records, ("box_slit",), ("pssnet", "one_completion", "oracle"))
+    # 8 scenes only PSSNet lifted, none only the other: two-sided sign test p = 2 / 2^8.
+    assert "one_completion +8/-0 (p=0.0078)" in line and "oracle +0/-0 (p=1)" in line
+    assert paired_lines(records, ("box_slit",), ("one_completion", "oracle")) == []
 
 
 def test_wilson_interval():

@@ -47,8 +47,9 @@ def run_command(args: argparse.Namespace) -> int:
     from pssnet_core.trials.run import TrialsConfig, markdown_table, run_trials, summarise
     from pssnet_core.trials.strategies import Strategist
 
+    checkpoints = {"pssnet": str(args.pssnet_checkpoint or "shipped default"), "vae": str(args.vae_checkpoint or "")}
     config = TrialsConfig(scenarios=args.scenarios, strategies=args.strategies, trials=args.trials, seed=args.seed,
-                          num_samples=args.num_samples, filmstrip_scenes=args.filmstrip_scenes)
+                          num_samples=args.num_samples, filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
     if args.cache_dir is not None:
         config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
     try:

@@ -44,6 +44,8 @@ class TrialsConfig:
             and fingers kept 3 mm above the (known) table.
         scenario: scene options.
         physics: simulation options.
+        checkpoints: which model files the strategies used (recorded with the results; a resumed run must
+            use the same).
     """
 
     scenarios: tuple[str, ...] = SCENARIOS
@@ -55,6 +57,7 @@ class TrialsConfig:
     grasps: GraspConfig = field(default_factory=lambda: GraspConfig(oversample=10.0, plane_clearance=0.003))
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    checkpoints: dict[str, str] = field(default_factory=dict)
 
     def fingerprint(self) -> dict[str, Any]:
         """What decides the records (the scene count and cache location may change between runs)."""
@@ -132,6 +135,31 @@ def summarise(records: Iterable[TrialRecord], scenarios: tuple[str, ...], strate
     return list(table.values())
 
 
+def paired_lines(records: list[TrialRecord], scenarios: tuple[str, ...], strategies: tuple[str, ...],
+                 reference: str = "pssnet") -> list[str]:
+    """Markdown lines comparing ``reference`` with every other strategy on the same scenes: scenes only it
+    lifted, scenes only the other lifted, and the exact two-sided sign (McNemar) test of that split."""
+    from scipy.stats import binomtest
+
+    if reference not in strategies:
+        return []
+    success = {(r.scenario, r.index, r.strategy): r.success for r in records}
+    lines = []
+    for scenario in scenarios:
+        parts = []
+        for other in strategies:
+            if other == reference:
+                continue
+            pairs = [(success[(scenario, i, reference)], success[(scenario, i, other)])
+                     for (s, i, g) in success if s == scenario and g == reference and (s, i, other) in success]
+            wins = sum(a and not b for a, b in pairs)
+            losses = sum(b and not a for a, b in pairs)
+            p = binomtest(wins, wins + losses).pvalue if wins + losses else 1.0
+            parts.append(f"{other} +{wins}/-{losses} (p={p:.2g})")
+        lines.append(f"- {scenario}: " + ", ".join(parts))
+    return lines
+
+
 def markdown_table(summaries: list[Summary]) -> str:
     """The results table: success rate with its 95 % interval and the failure causes."""
     lines = ["| scenario | strategy | trials | success | 95 % interval | " + " | ".join(CAUSES) + " |",
@@ -163,7 +191,7 @@ class FrameRenderer:
             self._model, self._renderer = model, mujoco.Renderer(model, *FRAME_SIZE)
         camera = mujoco.MjvCamera()
         camera.lookat[:] = self.lookat
-        camera.distance, camera.azimuth, camera.elevation = 0.5, 215.0, -35.0
+        camera.distance, camera.azimuth, camera.elevation = 0.6, 215.0, -30.0
         self._renderer.update_scene(data, camera=camera)
         # Software GL here: shadows and reflections would double the cost of a frame and show nothing new.
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
@@ -246,7 +274,7 @@ def save_filmstrip(path: Path, scenario: str, films: list[SceneFilm]) -> None:
             row += 1
     fig.suptitle(f"{scenario}: the first scenes; frames: pre-grasp, fingers closed (or first contact), end",
                  fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.5 / (rows * 2.0 + 0.4)))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -293,7 +321,7 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
                 choices = strategist.choose(scene, config.strategies if film else todo, seed)
                 renderer = None
                 if film:
-                    renderer = FrameRenderer(scene.physics.object_pose[:3, 3] + np.array([0.0, 0.0, 0.05]))
+                    renderer = FrameRenderer(scene.physics.object_pose[:3, 3] + np.array([0.0, 0.0, 0.08]))
                     films.append(SceneFilm(index, overview_frame(scene.physics, renderer, config), scene.view.depth,
                                            scene.view.mask, scene.notes))
                 for name, choice in choices.items():
@@ -361,6 +389,9 @@ def write_summary(path: Path, config: TrialsConfig, records: list[TrialRecord],
             "Failure causes: no_grasp (the strategy found no grasp holding for any of its shapes), collision "
             "(the hand touched something before closing), missed (the fingers closed without both touching the "
             "object), slipped (held after closing, lost by the end of the exit and shake).", "",
+            "Paired on the same scenes, PSSNet against each strategy: +scenes only PSSNet lifted / -scenes only "
+            "the other lifted (exact sign test of that split):", "",
+            *paired_lines(records, config.scenarios, config.strategies), "",
             f"Collision shapes (CoACD, threshold {config.scenario.decomposition.threshold}):", "",
             *faithfulness_lines(faithfulness), "",
             "Settings:", "", "```json", json.dumps(config.fingerprint(), indent=1), "```", ""]
