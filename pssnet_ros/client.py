@@ -63,6 +63,7 @@ class RosClient:
         self._executor = SingleThreadedExecutor(context=self.context)
         self._executor.add_node(self.node)
         self._clients: dict[tuple[type, str], Any] = {}
+        self._closing = threading.Event()
         self._thread = threading.Thread(target=self._spin, name=f"{name}-executor", daemon=True)
         self._thread.start()
 
@@ -70,10 +71,13 @@ class RosClient:
         from rclpy.executors import ExternalShutdownException
 
         try:
-            while self.context.ok():
+            while self.context.ok() and not self._closing.is_set():
                 self._executor.spin_once(timeout_sec=0.1)
-        except (ExternalShutdownException, RuntimeError):  # the context was shut down under the executor
+        except ExternalShutdownException:
             pass
+        except RuntimeError:  # rclpy's shutdown race (see pssnet_ros.spinning), unless the context is still valid
+            if self.context.ok():
+                raise
 
     def service(self, srv_type: type, name: str, timeout: float = 30.0, new: bool = False) -> Any:
         """A client of service ``name`` whose server has been discovered (waits up to ``timeout`` s).
@@ -135,10 +139,11 @@ class RosClient:
                    f"subscribers of {', '.join(p.topic_name for p in publishers)}")
 
     def close(self) -> None:
+        self._closing.set()
+        self._thread.join(timeout=5)  # the spinner leaves within one spin_once timeout, before anything is torn down
         self._executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self.context.try_shutdown()
-        self._thread.join(timeout=5)
 
     def __enter__(self) -> RosClient:
         return self

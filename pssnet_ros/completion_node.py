@@ -44,6 +44,7 @@ from pssnet_core.pipeline import CompletionPipeline, PipelineResult
 from pssnet_ros import conversions
 from pssnet_ros.newest_slot import NewestSlot
 from pssnet_ros.params import PARAMETERS, check_values, markdown_table, pipeline_config
+from pssnet_ros.spinning import spin_until_shutdown
 from pssnet_ros.sync import StampSynchronizer, SyncedSet
 
 NODE_NAME = "pssnet"
@@ -375,7 +376,7 @@ def main(args: Sequence[str] | None = None) -> int:
         executor.add_node(node)
         node.get_logger().info(f"ready: serving {node.resolve_service_name('~/sample_completions')}, continuous "
                                f"{'on' if node.get_parameter('continuous').value else 'off'}")
-        executor.spin()
+        spin_until_shutdown(executor)
     except StartupError as error:
         print(f"[completion_node] error: {error}", file=sys.stderr)
         code = 2

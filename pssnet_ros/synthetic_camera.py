@@ -25,6 +25,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from pssnet_core.data.scenes import RenderedView
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image
+from pssnet_ros.spinning import spin_until_shutdown
 
 FRAME_ID = "camera_depth_optical_frame"
 #: a test-split mug (round body, ring handle) that the shipped model never saw in training
@@ -113,7 +114,7 @@ def main(args: Sequence[str] | None = None) -> int:
                                f"{options.depth_encoding}); up_vector [{up}]; handle visible: {view.handle_visible}")
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        spin_until_shutdown(executor)
     except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
         pass
     finally:
