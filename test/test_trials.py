@@ -187,6 +187,9 @@ def test_scenes_are_deterministic_and_the_slit_hides_the_box_depth(factory):
     first, again = factory.scene("box_slit", 0, seed=3), factory.scene("box_slit", 0, seed=3)
     assert np.array_equal(first.view.depth, again.view.depth) and first.notes == again.notes
     assert first.notes["object"].startswith("box-2")  # a test-split object
+    # Every pool object's collision shape was measured (boxes: one exact convex part) and none was left out.
+    assert all(abs(factory.faithfulness[str(b.identity)].volume_error) < 1e-3 for b in factory.boxes)
+    assert factory.rejected == []
     view = first.view
     seen_columns = np.flatnonzero(view.mask.any(axis=0))
     # Only a slit of about 3.6 cm at the box's depth shows the box.

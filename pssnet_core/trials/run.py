@@ -19,7 +19,7 @@ import numpy as np
 
 from pssnet_core.grasps import GraspConfig
 from pssnet_core.trials import SCENARIOS, STRATEGIES
-from pssnet_core.trials.collision import Faithfulness, measure_faithfulness
+from pssnet_core.trials.collision import Faithfulness
 from pssnet_core.trials.physics import OUTCOMES, PhysicsConfig, PhysicsScene, TrialOutcome, build_model, run_trial
 from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory
 from pssnet_core.trials.strategies import Choice, Strategist
@@ -344,9 +344,8 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
                 save_filmstrip(out / f"filmstrip_{scenario}.png", scenario, films)
     bar.close()
     used = {str(r.notes["object"]) for r in records}
-    faithfulness = {str(shape.identity): measure_faithfulness(shape, factory.parts(shape))
-                    for shape in factory.mugs + factory.boxes if str(shape.identity) in used}
-    write_summary(out / "summary.md", config, records, faithfulness)
+    faithfulness = {name: f for name, f in factory.faithfulness.items() if name in used}
+    write_summary(out / "summary.md", config, records, faithfulness, factory.rejected)
     return records
 
 
@@ -381,7 +380,7 @@ def faithfulness_lines(faithfulness: dict[str, Faithfulness]) -> list[str]:
 
 
 def write_summary(path: Path, config: TrialsConfig, records: list[TrialRecord],
-                  faithfulness: dict[str, Faithfulness]) -> None:
+                  faithfulness: dict[str, Faithfulness], rejected: list[str]) -> None:
     """The results table, the collision shapes' faithfulness and the run's settings as markdown."""
     summaries = summarise(records, config.scenarios, config.strategies)
     text = [f"# Grasp trials ({config.trials} scenes per scenario, seed {config.seed})", "",
@@ -392,7 +391,11 @@ def write_summary(path: Path, config: TrialsConfig, records: list[TrialRecord],
             "Paired on the same scenes, PSSNet against each strategy: +scenes only PSSNet lifted / -scenes only "
             "the other lifted (exact sign test of that split):", "",
             *paired_lines(records, config.scenarios, config.strategies), "",
-            f"Collision shapes (CoACD, threshold {config.scenario.decomposition.threshold}):", "",
-            *faithfulness_lines(faithfulness), "",
+            f"Collision shapes (CoACD, threshold {config.scenario.decomposition.threshold}) of the objects used:", "",
+            *faithfulness_lines(faithfulness),
+            f"- left out of the object pools for an unfaithful collision shape (volume off by more than "
+            f"{100 * config.scenario.max_volume_error:.0f} % or the handle hole closed): "
+            f"{', '.join(rejected) or 'none'}",
+            "",
             "Settings:", "", "```json", json.dumps(config.fingerprint(), indent=1), "```", ""]
     path.write_text("\n".join(text))

@@ -1,6 +1,7 @@
 """The trial scenes: the paper's two robot anecdotes, randomised, and an unambiguous control.
 
-Every scene is built from held-out objects (test-split seeds, never in training) and rendered with the
+Every scene is built from held-out objects (test-split seeds, never in training; an object whose collision
+shape is not faithful, :class:`ScenarioConfig` ``max_volume_error``, is left out) and rendered with the
 project's own depth renderer (:class:`pssnet_core.data.scenes.ObjectScene`, the code that made the training
 data), with the clutter boxes composited in by ray casting. World frame: z up, table at z = 0, the object
 stands at the origin, the camera looks along +x from the -x side (azimuth 180, as in the training data).
@@ -29,6 +30,7 @@ clutter by ``clutter_margin``: :func:`clear_of_clutter`, passed to ``plan_grasps
 from __future__ import annotations
 
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -40,7 +42,14 @@ from pssnet_core.geometry import CameraIntrinsics, GridPose
 from pssnet_core.grasps import GraspCandidates, GripperConfig
 from pssnet_core.shapes import Shape, make_shape, split_seeds
 from pssnet_core.trials import SCENARIOS
-from pssnet_core.trials.collision import DEFAULT_CACHE_DIR, ConvexPart, DecompositionConfig, decompose
+from pssnet_core.trials.collision import (
+    DEFAULT_CACHE_DIR,
+    ConvexPart,
+    DecompositionConfig,
+    Faithfulness,
+    decompose,
+    measure_faithfulness,
+)
 from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene
 
 MAX_ATTEMPTS = 30
@@ -61,6 +70,8 @@ class ScenarioConfig:
         slit_width: slit width at the box's depth (m).
         clutter_margin: the planner keeps the hand this far from the clutter (m).
         max_occlusion: largest fraction of the object's pixels the clutter may hide (mug scenes, control).
+        max_volume_error: objects whose collision shape's volume is off by more than this fraction (or, mugs,
+            whose handle hole it closes) are left out of the pools.
         intrinsics: the depth camera.
         decomposition: CoACD options of the collision shapes.
         cache_dir: where decompositions are cached (None: no cache).
@@ -72,6 +83,7 @@ class ScenarioConfig:
     slit_width: float = 0.036
     clutter_margin: float = 0.005
     max_occlusion: float = 0.01
+    max_volume_error: float = 0.05
     intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics.kinect_like)
     decomposition: DecompositionConfig = field(default_factory=DecompositionConfig)
     cache_dir: Path | None = DEFAULT_CACHE_DIR
@@ -108,29 +120,21 @@ class TrialScene:
         return -origin_z / grid.voxel_size
 
 
-def held_out_mugs(count: int, gripper: GripperConfig) -> list[Shape]:
-    """The first ``count`` test-split mugs with a handle and a round body wider than the gripper opens (+2 mm)."""
-    found: list[Shape] = []
+def held_out_mugs(gripper: GripperConfig) -> Iterator[Shape]:
+    """Test-split mugs, in seed order, with a handle and a round body wider than the gripper opens (+2 mm)."""
     for seed in split_seeds("test", 5000):
         shape = make_shape("mug", seed)
         a = shape.attributes
         if a["has_handle"] and not a["square_body"] and 2 * float(a["radius_min"]) >= gripper.max_opening + 0.002:
-            found.append(shape)
-            if len(found) == count:
-                return found
-    raise ScenarioError(f"only {len(found)} test-split mugs qualify, {count} asked for")
+            yield shape
 
 
-def held_out_boxes(count: int, gripper: GripperConfig) -> list[Shape]:
-    """The first ``count`` standing test-split boxes whose short horizontal side fits the gripper (1 cm spare)."""
-    found: list[Shape] = []
+def held_out_boxes(gripper: GripperConfig) -> Iterator[Shape]:
+    """Standing test-split boxes, in seed order, whose short horizontal side fits the gripper (1 cm spare)."""
     for seed in split_seeds("test", 5000):
         shape = make_shape("box", seed)
         if not shape.attributes["lying"] and min(shape.mesh.extents[:2]) <= gripper.max_opening - 0.01:
-            found.append(shape)
-            if len(found) == count:
-                return found
-    raise ScenarioError(f"only {len(found)} test-split boxes qualify, {count} asked for")
+            yield shape
 
 
 def _clutter_depth(boxes: tuple[ClutterBox, ...], camera_pose: np.ndarray, intrinsics: CameraIntrinsics
@@ -177,18 +181,35 @@ class SceneFactory:
         self._mugs: list[Shape] | None = None
         self._boxes: list[Shape] | None = None
         self._scenes: dict[str, ObjectScene] = {}
+        self.faithfulness: dict[str, Faithfulness] = {}  # every decomposition measured, by object
+        self.rejected: list[str] = []  # objects left out because their collision shape was not faithful
 
     @property
     def mugs(self) -> list[Shape]:
         if self._mugs is None:
-            self._mugs = held_out_mugs(self.config.mugs, self.gripper)
+            self._mugs = self._pool(held_out_mugs(self.gripper), self.config.mugs, "mugs")
         return self._mugs
 
     @property
     def boxes(self) -> list[Shape]:
         if self._boxes is None:
-            self._boxes = held_out_boxes(self.config.boxes, self.gripper)
+            self._boxes = self._pool(held_out_boxes(self.gripper), self.config.boxes, "boxes")
         return self._boxes
+
+    def _pool(self, candidates: Iterator[Shape], count: int, what: str) -> list[Shape]:
+        """The first ``count`` candidates whose collision shape is faithful (volume within
+        ``max_volume_error``, a mug's handle hole kept)."""
+        pool: list[Shape] = []
+        for shape in candidates:
+            faithful = measure_faithfulness(shape, self.parts(shape))
+            self.faithfulness[str(shape.identity)] = faithful
+            if abs(faithful.volume_error) <= self.config.max_volume_error and faithful.hole_kept is not False:
+                pool.append(shape)
+                if len(pool) == count:
+                    return pool
+            else:
+                self.rejected.append(str(shape.identity))
+        raise ScenarioError(f"only {len(pool)} held-out {what} qualify, {count} asked for")
 
     def parts(self, shape: Shape) -> list[ConvexPart]:
         """The shape's collision parts (decomposed once, then from the disk cache)."""
