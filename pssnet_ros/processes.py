@@ -127,22 +127,24 @@ def shm_files() -> dict[str, int]:
 
 
 def _locked_inodes(pid: int | None = None) -> set[int]:
-    """Inodes of files flock-ed by ``pid`` (None: by any live process), from /proc/locks."""
+    """Inodes of /dev/shm files flock-ed by ``pid`` (None: by any live process), from /proc/locks."""
     inodes: set[int] = set()
     try:
+        st_dev = os.stat(SHM_DIR).st_dev
         lines = Path("/proc/locks").read_text().splitlines()
     except OSError:
         return inodes
+    shm_device = f"{os.major(st_dev):02x}:{os.minor(st_dev):02x}"  # as /proc/locks writes it
     for line in lines:
         fields = line.split()
         if "->" in fields:  # a waiter blocked on the lock above, not a holder
             continue
         try:
-            holder, device = int(fields[4]), fields[5]
+            holder, (major, minor, inode) = int(fields[4]), fields[5].split(":")
         except (IndexError, ValueError):
             continue
-        if pid is None or holder == pid:
-            inodes.add(int(device.rsplit(":", 1)[1]))
+        if f"{major}:{minor}" == shm_device and (pid is None or holder == pid):
+            inodes.add(int(inode))
     return inodes
 
 
