@@ -15,11 +15,12 @@ stands at the origin, the camera looks along +x from the -x side (azimuth 180, a
   the clutter may cover at most 1 % of the object's pixels). The way out is 2 cm up (the shelf leaves 4)
   and then 15 cm back out of the cupboard, instead of the plain 15 cm lift.
 - ``box_slit``: a box standing behind two blocks that leave a 3.6 cm slit at the box's depth (the paper's
-  narrow test slit), the camera level with the box (tilt 0, aimed at or below its centre, so its top face
-  is not seen), a wall 37 cm behind the box's front: its depth along the view is hidden (and, as in the
-  training views, its width beyond the slit). Boxes are turned so that either their long or their
-  short side runs along the view (+-10 degrees), so the hidden depth ranges over 2.4-12.6 cm, both sides of
-  the gripper's 8 cm opening: a grasp that closes across the depth fails when the box is deeper than it.
+  narrow test slit), the camera looking horizontally from the height of the box's top (its top face is
+  edge-on) and a wall 37 cm behind the box's front: its depth along the view is hidden (and, as in the
+  training views, its width beyond the slit), while the space above it is seen free. Boxes are turned so
+  that either their long or their short side runs along the view (+-10 degrees), so the hidden depth ranges
+  over 2.4-12.6 cm, both sides of the gripper's 8 cm opening: a grasp that closes across the depth fails
+  when the box is deeper than it.
 - ``control``: the same objects in full view, without clutter, camera looking down 25-45 degrees: even scene
   indices show a box at a random yaw, odd ones a mug with its handle visible.
 
@@ -274,7 +275,10 @@ class SceneFactory:
         lo, hi = corners.min(axis=0), corners.max(axis=0)
         height = float(hi[2])
         centre = 0.5 * (lo + hi)
-        target = np.array([centre[0], centre[1], rng.uniform(0.3, 0.5) * height])
+        # Level with the box's top (at most 3 mm below it): the top face is edge-on, and the rays over the box
+        # reach the wall, so the space above the box is seen free all the way back. Lower down, the box hides
+        # a wedge above its own top in which completions are free to make it taller behind its front face.
+        target = np.array([centre[0], centre[1], height - rng.uniform(0.0, 0.003)])
         distance = float(rng.uniform(0.5, 0.8))
         camera = orbit_camera(target, distance, 0.0)
         gap = float(rng.uniform(0.03, 0.05))  # between the blocks' back faces and the box's front
