@@ -173,13 +173,15 @@ def markdown_table(summaries: list[Summary]) -> str:
 
 
 class FrameRenderer:
-    """Render callback for :func:`run_trial`: the scene from behind and above (the robot's side).
+    """Render callback for :func:`run_trial`: the scene seen from ``view`` (distance m, azimuth and elevation
+    degrees of MuJoCo's free camera) around ``lookat``.
 
     One offscreen context per trial model (creating one costs about as much as a frame); :meth:`close` it.
     """
 
-    def __init__(self, lookat: np.ndarray) -> None:
+    def __init__(self, lookat: np.ndarray, view: tuple[float, float, float]) -> None:
         self.lookat = np.asarray(lookat, dtype=np.float64)
+        self.view = view
         self._model = None
         self._renderer = None
 
@@ -191,7 +193,7 @@ class FrameRenderer:
             self._model, self._renderer = model, mujoco.Renderer(model, *FRAME_SIZE)
         camera = mujoco.MjvCamera()
         camera.lookat[:] = self.lookat
-        camera.distance, camera.azimuth, camera.elevation = 0.6, 215.0, -30.0
+        camera.distance, camera.azimuth, camera.elevation = self.view
         self._renderer.update_scene(data, camera=camera)
         # Software GL here: shadows and reflections would double the cost of a frame and show nothing new.
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
@@ -321,7 +323,8 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
                 choices = strategist.choose(scene, config.strategies if film else todo, seed)
                 renderer = None
                 if film:
-                    renderer = FrameRenderer(scene.physics.object_pose[:3, 3] + np.array([0.0, 0.0, 0.08]))
+                    renderer = FrameRenderer(scene.physics.object_pose[:3, 3] + np.array([0.0, 0.0, 0.08]),
+                                             scene.film_view)
                     films.append(SceneFilm(index, overview_frame(scene.physics, renderer, config), scene.view.depth,
                                            scene.view.mask, scene.notes))
                 for name, choice in choices.items():

@@ -101,6 +101,8 @@ class TrialScene:
         view: the rendered view (depth and mask include the clutter).
         object_scene: ray-casting scene of the object (ground truth for the oracle).
         notes: what was drawn (object, yaw, hidden depth, ...), for the records.
+        film_view: where the filmstrip's camera looks from: distance (m), azimuth and elevation (degrees,
+            MuJoCo's free camera), chosen to see the hand and the object past the clutter.
     """
 
     scenario: str
@@ -109,6 +111,7 @@ class TrialScene:
     view: RenderedView
     object_scene: ObjectScene
     notes: dict[str, float | str]
+    film_view: tuple[float, float, float] = (0.6, 215.0, -30.0)
 
     def ground_truth(self, grid: GridPose) -> np.ndarray:
         """(N, N, N) true occupancy of the object in an observation grid (the project's one definition)."""
@@ -242,7 +245,9 @@ class SceneFactory:
                 continue
             notes = {**notes, "object": str(shape.identity), "occluded": round(hidden, 4), "attempt": attempt}
             physics = PhysicsScene(shape, self.parts(shape), pose, clutter, exit_path)
-            return TrialScene(scenario, index, physics, view, object_scene, notes)
+            # From behind and above (the robot's side); the box's wall stands behind it, so look from nearer.
+            film_view = (0.45, 240.0, -30.0) if scenario == "box_slit" else (0.6, 215.0, -30.0)
+            return TrialScene(scenario, index, physics, view, object_scene, notes, film_view)
         raise ScenarioError(f"no valid {scenario} scene {index} in {MAX_ATTEMPTS} draws")
 
     # ---------------------------------------------------------------------------------------- builders
