@@ -24,7 +24,7 @@ import torch
 
 from pssnet_core.data.store import GRID_KEYS, DatasetReader
 from pssnet_core.models.base import CompletionModel, StepContext
-from pssnet_core.training.trainer import batch_to_tensors
+from pssnet_core.training.trainer import batch_to_tensors, reconstruction_scores
 
 
 @dataclass(frozen=True)
@@ -72,12 +72,9 @@ def posterior_stats(model: CompletionModel, reader: DatasetReader, label: str, c
             with ctx.autocast():
                 mu, logvar = model.encode(model.check_input(t["input"]))
                 logits = model.decode(mu).float()
-            target = t["target"].to(logits.device)
-            bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, target, reduction="none")
-            bces.append(bce.flatten(1).mean(1).cpu().numpy())
-            pred, gt = (logits > 0).flatten(1), target.bool().flatten(1)
-            inter, union = (pred & gt).sum(1).float(), (pred | gt).sum(1).float()
-            ious.append(torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union)).cpu().numpy())
+            bce, iou = reconstruction_scores(logits, t["target"].to(logits.device))
+            bces.append(bce.cpu().numpy())
+            ious.append(iou.cpu().numpy())
             sigma = torch.exp(0.5 * logvar.float())
             box_sigmas.append(sigma[:, :box_dim].mean(1).cpu().numpy() if box_dim else np.full(len(mu), np.nan))
             rest_sigmas.append(sigma[:, box_dim:].mean(1).cpu().numpy())

@@ -202,6 +202,14 @@ def chamfer_mm(a: np.ndarray, b: np.ndarray, voxel_size: float) -> float:
 
 
 @torch.inference_mode()
+def reconstruction_scores(logits: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-view BCE per voxel and IoU (occupied = logit > 0; two empty grids count as IoU 1) of (B,1,N,N,N)."""
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, target, reduction="none").flatten(1).mean(1)
+    pred, gt = (logits > 0).flatten(1), target.bool().flatten(1)
+    inter, union = (pred & gt).sum(1).float(), (pred | gt).sum(1).float()
+    return bce, torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
+
+
 def validate(model: CompletionModel, reader: DatasetReader, ctx: StepContext, max_samples: int,
              slice_size: int, num_samples: int, batch_size: int, seed: int) -> dict[str, float]:
     """Validation numbers (see the module docstring). Leaves the model in train mode."""
@@ -213,12 +221,9 @@ def validate(model: CompletionModel, reader: DatasetReader, ctx: StepContext, ma
             t = batch_to_tensors(batch)
             with ctx.autocast():
                 logits = model.reconstruct(t["input"]).float()
-            target = t["target"].to(logits.device)
-            bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, target, reduction="none")
-            bce_sum += float(bce.flatten(1).mean(1).sum())
-            pred, gt = (logits > 0).flatten(1), target.bool().flatten(1)
-            inter, union = (pred & gt).sum(1).float(), (pred | gt).sum(1).float()
-            iou_sum += float(torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union)).sum())
+            bce, iou = reconstruction_scores(logits, t["target"].to(logits.device))
+            bce_sum += float(bce.sum())
+            iou_sum += float(iou.sum())
             count += len(logits)
         best = []
         if slice_size:
