@@ -107,6 +107,10 @@ class PSSNetConfig(VAEConfig):
             1e-5 needs 3000 for, and 1e-3 is too high; after pre-training the paper's 1e-5 takes over.
         flow_pretrain_batch: batch size of that pre-training (the authors': 1500).
         flow_weight: weight of L_flow (the paper: 1, same as the VAE loss).
+        box_components: components of the box posterior: 1 = the paper's diagonal Gaussian (the encoder's
+            first ``box_dim`` outputs), K > 1 = a mixture head over the encoder's output
+            (:class:`~pssnet_core.models.box_mixture.BoxMixtureHead`; why: ``results/box_mixture/``).
+        box_head_hidden: width of the mixture head's two hidden layers.
     """
 
     model: ClassVar[str] = "pssnet"
@@ -122,9 +126,14 @@ class PSSNetConfig(VAEConfig):
     flow_pretrain_lr: float = 1e-4
     flow_pretrain_batch: int = 1024
     flow_weight: float = 1.0
+    box_components: int = 1
+    box_head_hidden: int = 256
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.box_components < 1 or self.box_head_hidden < 1:
+            raise ConfigError(f"box_components and box_head_hidden must be >= 1, got {self.box_components}, "
+                              f"{self.box_head_hidden}")
         if not 0 < self.box_dim < self.latent_dim or self.box_dim % 2:
             raise ConfigError(f"box_dim must be even and in (0, latent_dim={self.latent_dim}), got {self.box_dim}")
         if self.box_offset is None:

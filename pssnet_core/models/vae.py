@@ -20,6 +20,9 @@ PSSNet specifics (paper sec. 4, DESIGN.md):
   eval mode (running batch-norm statistics), so a box has one embedding regardless of its batch.
 - KL is computed on the non-box dims only.
 - Inference is plain VAE sampling from the encoder's posterior over all 200 dims; the flow is not used.
+- Beyond the paper (``box_components`` > 1): the box dims' posterior is a mixture of diagonal Gaussians
+  (:mod:`pssnet_core.models.box_mixture`), fitted by the same L_flow (its negative log-likelihood of the true
+  box's code); the other dims keep the Gaussian. With 1 component the model is the paper's.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from pssnet_core.models.base import (
     check_num_samples,
     fp32_region,
 )
+from pssnet_core.models.box_mixture import BoxMixtureHead
 from pssnet_core.models.config import PSSNetConfig, VAEConfig, VAEGANConfig
 from pssnet_core.models.flow import LOG_2PI, RealNVP
 from pssnet_core.models.networks import Decoder3D, Discriminator3D, Encoder3D
@@ -106,12 +110,18 @@ class VAE(CompletionModel):
         check_num_samples(num_samples)
         t = check_box_temperature(box_temperature, self.box_dim > 0)
         mu, logvar = self.encode(self.check_input(x))  # encoder once
+        z = self.sample_latents(mu, logvar, num_samples, generator, t)
+        return torch.sigmoid(self.decode(z).float())  # decoder on all latents in one batch
+
+    def sample_latents(self, mu: torch.Tensor, logvar: torch.Tensor, num_samples: int,
+                       generator: torch.Generator | None, box_temperature: float) -> torch.Tensor:
+        """(B * num_samples, latent_dim) draws from the diagonal Gaussian posterior, box sigma times the
+        temperature."""
         b = mu.shape[0]
         eps = torch.randn(b * num_samples, self.latent_dim, generator=generator).to(mu.device)
-        if t != 1.0:
-            eps[:, :self.box_dim] *= t
-        z = mu.repeat_interleave(num_samples, 0) + torch.exp(0.5 * logvar).repeat_interleave(num_samples, 0) * eps
-        return torch.sigmoid(self.decode(z).float())  # decoder on all latents in one batch
+        if box_temperature != 1.0:
+            eps[:, :self.box_dim] *= box_temperature
+        return mu.repeat_interleave(num_samples, 0) + torch.exp(0.5 * logvar).repeat_interleave(num_samples, 0) * eps
 
 
 class PSSNet(VAE):
@@ -126,6 +136,38 @@ class PSSNet(VAE):
         self.box_dim = config.box_dim
         self.flow = RealNVP(config.box_dim, config.flow_couplings, config.flow_hidden,
                             config.flow_hidden_layers, config.flow_batchnorm_every)
+        # The box posterior: the encoder's diagonal Gaussian (the paper, 1 component) or a mixture head.
+        self.box_head = (BoxMixtureHead(2 * config.latent_dim, config.box_dim, config.box_components,
+                                        config.box_head_hidden) if config.box_components > 1 else None)
+
+    def box_nll(self, mu: torch.Tensor, logvar: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        """-log q(code | view) of box codes under the box posterior, (B,): L_flow per view."""
+        k = self.box_dim
+        if self.box_head is not None:
+            return self.box_head.nll(torch.cat([mu, logvar], 1), code)
+        return (0.5 * ((code - mu[:, :k]).pow(2) * torch.exp(-logvar[:, :k]) + logvar[:, :k] + LOG_2PI)).sum(1)
+
+    def box_spread(self, mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+        """(B, box_dim) standard deviation of the box posterior per dim, in flow units (prior: 1)."""
+        if self.box_head is not None:
+            return self.box_head.spread(torch.cat([mu, logvar], 1))
+        return torch.exp(0.5 * logvar[:, :self.box_dim])
+
+    def sample_latents(self, mu: torch.Tensor, logvar: torch.Tensor, num_samples: int,
+                       generator: torch.Generator | None, box_temperature: float) -> torch.Tensor:
+        z = super().sample_latents(mu, logvar, num_samples, generator, box_temperature)
+        if self.box_head is not None:
+            # The mixture's temperature scales each component's sigma: the weights and centres stay.
+            z[:, :self.box_dim] = self.box_head.sample(torch.cat([mu, logvar], 1), num_samples, generator,
+                                                       box_temperature)
+        return z
+
+    def reconstruct(self, x: torch.Tensor) -> torch.Tensor:
+        mu, logvar = self.encode(self.check_input(x))
+        if self.box_head is not None:
+            # The heaviest component's centre: the mixture's mean can be the code of no box at all.
+            mu = torch.cat([self.box_head.mode(torch.cat([mu, logvar], 1)), mu[:, self.box_dim:]], 1)
+        return self.decode(mu)
 
     def normalise_box(self, box: torch.Tensor) -> torch.Tensor:
         """Grid coordinates (0..N) -> roughly [-1, 1]."""
@@ -193,8 +235,7 @@ class PSSNet(VAE):
             logits = self.decode(z_dec)
         rec = bce_sum(logits, y)
         kl = single_sample_kl(z[:, k:], mu[:, k:], logvar[:, k:])
-        l_flow = (0.5 * ((z_box - mu[:, :k]).pow(2) * torch.exp(-logvar[:, :k]) + logvar[:, :k] + LOG_2PI)
-                  ).sum(1).mean()
+        l_flow = self.box_nll(mu, logvar, z_box).mean()
         loss = rec + self.config.kl_weight * kl + self.config.flow_weight * l_flow
         opt = optimizers["main"]
         opt.zero_grad(set_to_none=True)

@@ -1,4 +1,4 @@
-"""``pssnet train``, ``export-model`` and ``posterior`` subcommands (also runnable alone: see :func:`main`)."""
+"""``pssnet train``, ``export-model``, ``posterior`` and ``fit-box-head`` subcommands (runnable alone: :func:`main`)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from pssnet_core.training.trainer import BEST_METRICS, TrainConfig, Trainer, Tra
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Adds ``train``, ``export-model`` and ``posterior`` to the ``pssnet`` command line."""
+    """Adds ``train``, ``export-model``, ``posterior`` and ``fit-box-head`` to the ``pssnet`` command line."""
     p = subparsers.add_parser(
         "train", help="train a completion model (pssnet, vae, vae_gan, recgan) on a dataset directory",
         description="Trains a model on a dataset written by `pssnet dataset build`; writes last.pt (resumable), "
@@ -75,6 +75,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("--threads", type=int, default=2)
     q.add_argument("--out", default=None, help="directory for posterior.txt and posterior.json")
     q.set_defaults(func=_posterior)
+
+    b = subparsers.add_parser(
+        "fit-box-head", help="fit a mixture box posterior onto a trained PSSNet (encoder, decoder, flow frozen)",
+        description="Encodes training views with a trained PSSNet, fits a K-component mixture to the flow codes "
+                    "of their true boxes, and writes a checkpoint with that head (pssnet_core/training/box_head.py).")
+    b.add_argument("--checkpoint", required=True, help="PSSNet training checkpoint (best.pt; needs the flow)")
+    b.add_argument("--data", required=True, help="training dataset directories, comma-joined")
+    b.add_argument("--out", required=True, help="checkpoint to write, e.g. runs/pssnet32_mix/best.pt")
+    b.add_argument("--components", type=int, default=16)
+    b.add_argument("--hidden", type=int, default=256)
+    b.add_argument("--max-views", type=int, default=None, help="training views to encode (default all)")
+    b.add_argument("--steps", type=int, default=4000)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--threads", type=int, default=2)
+    b.set_defaults(func=_fit_box_head)
 
 
 def _posterior(args: argparse.Namespace) -> int:
@@ -154,6 +169,20 @@ def _train(args: argparse.Namespace) -> int:
     print(f"done: {summary['steps']} steps, {summary['elapsed_s'] / 60:.1f} min ({summary['stopped_by']}), "
           f"{summary['precision']} on {summary['device']}; last validation: bce {val['val_bce']:.4f}, "
           f"IoU {val['val_iou']:.3f}, best-acc {val['val_best_acc_mm']:.2f} mm; checkpoints in {args.out}")
+    return 0
+
+
+def _fit_box_head(args: argparse.Namespace) -> int:
+    from pssnet_core.training.box_head import BoxHeadFitConfig, fit_box_head
+
+    try:
+        fit_box_head(BoxHeadFitConfig(checkpoint=args.checkpoint, data=args.data, out=args.out,
+                                      components=args.components, hidden=args.hidden, max_views=args.max_views,
+                                      steps=args.steps, seed=args.seed, threads=args.threads))
+    except (CheckpointError, DatasetError, ValueError) as error:
+        print(f"pssnet fit-box-head: error: {error}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out}")
     return 0
 
 

@@ -2,12 +2,14 @@
 
 Two questions from the ambiguity work (issue 11), answered with the posterior *mean* (no true box, no sampling):
 
-- Does the model recognise training objects? BCE per voxel and IoU of ``decode(mu)`` on views of training
-  objects against views of objects it has never seen (validation, test). A model that generalises has about
-  the same numbers on both; one that memorised its few hundred objects is clearly better on the training ones.
+- Does the model recognise training objects? BCE per voxel and IoU of the posterior mean (``reconstruct``) on
+  views of training objects against views of objects it has never seen (validation, test). A model that
+  generalises has about the same numbers on both; one that memorised its few hundred objects is clearly better
+  on the training ones.
 - Does the posterior widen where the view is ambiguous? The posterior standard deviation of the latent, in
-  the units of the prior (1 = as wide as the prior), averaged over the box dims (PSSNet's first ``box_dim``)
-  and over the others, separately for mug views whose handle is hidden and visible.
+  the units of the prior (1 = as wide as the prior), averaged over the box dims (PSSNet's first ``box_dim``;
+  with a mixture box posterior the whole mixture's standard deviation) and over the others, separately for mug
+  views whose handle is hidden and visible.
 
 Datasets are whatever `pssnet dataset build` wrote; the comparison is fair when they are built alike (e.g.
 ``--family mugs --num-objects 12 --views 12`` for each split: the first training objects are training objects
@@ -71,12 +73,14 @@ def posterior_stats(model: CompletionModel, reader: DatasetReader, label: str, c
             t = batch_to_tensors(batch)
             with ctx.autocast():
                 mu, logvar = model.encode(model.check_input(t["input"]))
-                logits = model.decode(mu).float()
+                # The model's own posterior mean (a mixture box posterior decodes its heaviest component).
+                logits = model.reconstruct(t["input"]).float()
             bce, iou = reconstruction_scores(logits, t["target"].to(logits.device))
             bces.append(bce.cpu().numpy())
             ious.append(iou.cpu().numpy())
             sigma = torch.exp(0.5 * logvar.float())
-            box_sigmas.append(sigma[:, :box_dim].mean(1).cpu().numpy() if box_dim else np.full(len(mu), np.nan))
+            box_sigmas.append(model.box_spread(mu.float(), logvar.float()).mean(1).cpu().numpy() if box_dim
+                              else np.full(len(mu), np.nan))
             rest_sigmas.append(sigma[:, box_dim:].mean(1).cpu().numpy())
             index_order.append(np.asarray(batch["index"]))
     order = np.concatenate(index_order)
