@@ -26,8 +26,8 @@ import torch
 
 from pssnet_core.inference import Completer
 from pssnet_core.models import build_model, default_config
+from pssnet_core.models.checkpoint import load_checkpoint
 from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d
-from pssnet_core.training import load_checkpoint
 
 
 def _observation(grid: int, seed: int = 0) -> np.ndarray:

@@ -23,16 +23,15 @@ import numpy as np
 import torch
 
 from pssnet_core.models.base import CompletionModel, ModelInputError, StepContext, check_box_temperature, fast_dtype
+from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint
 from pssnet_core.models.config import ModelConfig
-from pssnet_core.training.checkpoint import CheckpointError, load_checkpoint
 
 if TYPE_CHECKING:
     from pssnet_core.geometry import Observation
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "default_pssnet_32.pt"
 
-__all__ = ["DEFAULT_CHECKPOINT", "CheckpointError", "Completer", "CompletionInputError", "CompletionResult",
-           "default_checkpoint_path"]
+__all__ = ["DEFAULT_CHECKPOINT", "CheckpointError", "Completer", "CompletionInputError", "CompletionResult"]
 
 
 class CompletionInputError(ValueError):
@@ -62,11 +61,6 @@ class CompletionResult:
     @property
     def num_samples(self) -> int:
         return int(self.probabilities.shape[0])
-
-
-def default_checkpoint_path() -> Path:
-    """Where the shipped default model lives (inside the package)."""
-    return DEFAULT_CHECKPOINT
 
 
 class Completer:

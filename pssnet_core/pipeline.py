@@ -161,9 +161,6 @@ class PipelineResult:
 
 def checkpoint_voxel_size(completer: Completer) -> float | None:
     """Voxel size (metres) the completer's model was trained with, when its checkpoint records it."""
-    grid = getattr(completer, "grid_config", None)
-    if grid is not None and getattr(grid, "voxel_size", None):
-        return float(grid.voxel_size)
     info = getattr(completer, "info", {}) or {}
     for source in (info, info.get("grid") or {}, info.get("data_meta") or {}):
         if isinstance(source, dict) and source.get("voxel_size"):

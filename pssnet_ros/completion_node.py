@@ -130,7 +130,7 @@ class CompletionNode(Node):
         return values
 
     def _load_pipeline(self) -> CompletionPipeline:
-        from pssnet_core.training.checkpoint import CheckpointError  # imports torch
+        from pssnet_core.models.checkpoint import CheckpointError  # imports torch
 
         values = self._values
         try:

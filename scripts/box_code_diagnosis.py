@@ -23,8 +23,8 @@ from pssnet_core.data.scenes import box_in_grid
 from pssnet_core.evaluation.ambiguity import mug_parts, plausible_handle_arc
 from pssnet_core.evaluation.handles import HandleGeometry, circular_difference_deg, handle_azimuths, turned
 from pssnet_core.evaluation.testsets import load_test_set
+from pssnet_core.models.checkpoint import load_checkpoint
 from pssnet_core.shapes import ShapeId, make_shape
-from pssnet_core.training.checkpoint import load_checkpoint
 
 #: corner signs in Shape.box_corners order (binary counting, x fastest)
 SIGNS = np.array([[(i & 1) * 2 - 1, ((i >> 1) & 1) * 2 - 1, ((i >> 2) & 1) * 2 - 1] for i in range(8)], float)

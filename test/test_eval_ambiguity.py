@@ -265,7 +265,7 @@ def test_cli_runs_a_real_checkpoint_at_each_box_temperature(tiny_sets, tmp_path,
     from test_models_helpers import tiny_model
 
     from pssnet_core.cli import main
-    from pssnet_core.training.checkpoint import save_checkpoint
+    from pssnet_core.models.checkpoint import save_checkpoint
 
     checkpoint = save_checkpoint(tmp_path / "pssnet.pt", tiny_model("pssnet", grid=32))
     out = tmp_path / "out"

@@ -26,8 +26,8 @@ def tiny_data(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory) -> Path:
+    from pssnet_core.models.checkpoint import save_checkpoint
     from pssnet_core.models.registry import build_model, default_config
-    from pssnet_core.training.checkpoint import save_checkpoint
 
     folder = tmp_path_factory.mktemp("ckpt")
     save_checkpoint(folder / "vae.pt", build_model(default_config("vae", grid_size=16, channels=[4, 8, 8, 8])))
@@ -127,8 +127,8 @@ def test_bad_inputs(tiny_data, tiny_checkpoint, tmp_path, capsys):
 
 def test_evaluate_applies_each_models_box_temperature(tiny_data, tmp_path, monkeypatch):
     from pssnet_core.evaluation import cli as eval_cli
+    from pssnet_core.models.checkpoint import save_checkpoint
     from pssnet_core.models.registry import build_model, default_config
-    from pssnet_core.training.checkpoint import save_checkpoint
 
     ckpt = save_checkpoint(tmp_path / "p.pt", build_model(default_config("pssnet", grid_size=16, channels=[4, 8, 8, 8],
                                                                         flow_hidden=16, flow_couplings=2)))

@@ -147,8 +147,8 @@ def test_a_planted_training_shape_is_found(tiny_data, tmp_path):
 
 def test_cli_and_bad_inputs(tiny_data, tmp_path, one_torch_thread):
     from pssnet_core.cli import main
+    from pssnet_core.models.checkpoint import save_checkpoint
     from pssnet_core.models.registry import build_model, default_config
-    from pssnet_core.training.checkpoint import save_checkpoint
 
     checkpoint = save_checkpoint(tmp_path / "vae.pt",
                                  build_model(default_config("vae", grid_size=N, channels=[4, 8, 8, 8])))

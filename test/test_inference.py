@@ -9,7 +9,7 @@ from test_models_helpers import cuboid_sample, tiny_model
 
 import pssnet_core.inference as inference
 from pssnet_core.inference import CheckpointError, Completer, CompletionInputError, CompletionResult
-from pssnet_core.training import save_checkpoint
+from pssnet_core.models.checkpoint import save_checkpoint
 
 GRID = 16
 
@@ -101,7 +101,7 @@ def test_box_temperature_is_a_completer_default_that_a_call_overrides(tmp_path):
 
 
 def test_an_export_carries_its_calibrated_box_temperature(tmp_path):
-    from pssnet_core.training.checkpoint import export_checkpoint
+    from pssnet_core.models.checkpoint import export_checkpoint
 
     shipped = export_checkpoint(checkpoint(tmp_path), tmp_path / "ship.pt", box_temperature=1.5)
     assert Completer.from_checkpoint(shipped).box_temperature == 1.5
@@ -119,7 +119,3 @@ def test_missing_default_checkpoint_says_how_to_train(tmp_path, monkeypatch):
     with pytest.raises(CheckpointError, match="no checkpoint file"):
         Completer.from_checkpoint(tmp_path / "other.pt")
 
-
-def test_default_checkpoint_path_is_inside_the_package():
-    assert inference.default_checkpoint_path().parts[-3:] == ("pssnet_core", "checkpoints",
-                                                              "default_pssnet_32.pt")

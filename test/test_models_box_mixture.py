@@ -10,8 +10,8 @@ from test_models_helpers import make_dataset, tiny_model
 
 from pssnet_core.models import StepContext, config_from_dict
 from pssnet_core.models.box_mixture import BoxMixtureHead
+from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, load_checkpoint, save_checkpoint
 from pssnet_core.training.box_head import BoxHeadFitConfig, fit_box_head
-from pssnet_core.training.checkpoint import CheckpointError, export_checkpoint, load_checkpoint, save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 GRID = 16

@@ -15,8 +15,8 @@ import torch
 from pssnet_core.data.scenes import RenderedView, render_view
 from pssnet_core.inference import DEFAULT_CHECKPOINT
 from pssnet_core.models import build_model, default_config
+from pssnet_core.models.checkpoint import save_checkpoint
 from pssnet_core.shapes import make_shape
-from pssnet_core.training import save_checkpoint
 from pssnet_ros.processes import free_domain_id
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32, "flow_hidden": 32, "flow_couplings": 4}

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import re
 from dataclasses import replace
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -257,12 +256,6 @@ def test_support_plane_failure_is_explained():
     pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(estimate_up=True))
     with pytest.raises(PipelineInputError, match="support plane estimation failed"):
         pipeline.run(floating, scene.mask, scene.intrinsics)
-
-
-def test_duck_typed_grid_config_is_read():
-    completer = EchoCompleter()
-    completer.grid_config = SimpleNamespace(voxel_size=0.004)
-    assert CompletionPipeline(completer).grid_config().voxel_size == 0.004
 
 
 class TruthCompleter(EchoCompleter):

@@ -16,16 +16,8 @@ import torch
 import yaml
 from test_models_helpers import TINY_BY_MODEL, make_dataset, tiny_model
 
-from pssnet_core.training import (
-    CheckpointError,
-    TrainConfig,
-    Trainer,
-    TrainingError,
-    chamfer_mm,
-    export_checkpoint,
-    load_checkpoint,
-    save_checkpoint,
-)
+from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, load_checkpoint, save_checkpoint
+from pssnet_core.training import TrainConfig, Trainer, TrainingError, chamfer_mm
 from pssnet_core.training.cli import register
 from pssnet_core.training.trainer import resolve_context
 

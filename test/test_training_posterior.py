@@ -12,8 +12,8 @@ from test_models_helpers import cuboid_sample, tiny_model
 
 from pssnet_core.data.store import DatasetReader, DatasetWriter
 from pssnet_core.models import StepContext
+from pssnet_core.models.checkpoint import save_checkpoint
 from pssnet_core.training import cli as training_cli
-from pssnet_core.training.checkpoint import save_checkpoint
 from pssnet_core.training.posterior import posterior_stats
 
 GRID = 16

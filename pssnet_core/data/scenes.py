@@ -164,11 +164,6 @@ class RenderedView:
         """The observation grid of this view: exactly what the node computes from the same images."""
         return observe(self.depth, self.mask, self.intrinsics, self.up, config)
 
-    @property
-    def camera_to_object(self) -> np.ndarray:
-        """(4, 4) object <- camera."""
-        return np.linalg.inv(self.object_pose) @ self.camera_pose
-
 
 # ------------------------------------------------------------------------------------------- poses
 

@@ -11,6 +11,13 @@ from pssnet_core.models.base import (
     cpu_has_fast_bf16,
     fast_dtype,
 )
+from pssnet_core.models.checkpoint import (
+    CheckpointError,
+    export_checkpoint,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+)
 from pssnet_core.models.config import (
     ConfigError,
     ModelConfig,
@@ -24,7 +31,9 @@ from pssnet_core.models.config import (
 from pssnet_core.models.registry import build_model, default_config, get_model_class, model_names
 
 __all__ = [
-    "CompletionModel", "ConfigError", "ModelConfig", "ModelInputError", "PSSNetConfig", "RecGANConfig",
+    "CheckpointError", "CompletionModel", "ConfigError", "ModelConfig", "ModelInputError", "PSSNetConfig",
+    "RecGANConfig",
     "StepContext", "VAEConfig", "VAEGANConfig", "build_model", "config_from_dict", "config_from_yaml",
-    "cpu_has_fast_bf16", "default_config", "fast_dtype", "get_model_class", "model_names",
+    "cpu_has_fast_bf16", "default_config", "export_checkpoint", "fast_dtype", "get_model_class", "load_checkpoint",
+    "model_names", "read_checkpoint", "save_checkpoint",
 ]

@@ -24,7 +24,7 @@ as a surface shell or ray-parity voxelization; the data module decides which. Ch
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import MappingProxyType
 
@@ -278,7 +278,3 @@ def _attributes(mesh: trimesh.Trimesh, path: Path, layout: str, name: str, synse
         attributes["volume"] = float(mesh.volume)
     return attributes
 
-
-def shapes_by_name(shapes: Sequence[Shape]) -> dict[str, Shape]:
-    """Maps each loaded shape's ``name`` attribute (model id, YCB object name or file stem) to the shape."""
-    return {str(s.attributes.get("name", s.identity)): s for s in shapes}

@@ -27,8 +27,8 @@ import torch
 from pssnet_core.data.store import DatasetReader
 from pssnet_core.models import build_model
 from pssnet_core.models.base import fast_dtype
+from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from pssnet_core.models.vae import PSSNet
-from pssnet_core.training.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 
 
 @dataclass

@@ -7,9 +7,9 @@ import signal
 import sys
 
 from pssnet_core.data.store import DatasetError, DatasetReader
+from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, read_checkpoint
 from pssnet_core.models.config import ConfigError
 from pssnet_core.models.registry import model_names
-from pssnet_core.training.checkpoint import CheckpointError, export_checkpoint, read_checkpoint
 from pssnet_core.training.trainer import BEST_METRICS, TrainConfig, Trainer, TrainingError
 
 
@@ -96,7 +96,7 @@ def _posterior(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from pssnet_core.training.checkpoint import load_checkpoint
+    from pssnet_core.models.checkpoint import load_checkpoint
     from pssnet_core.training.posterior import format_table, posterior_stats, stats_dict
     from pssnet_core.training.trainer import resolve_context
 

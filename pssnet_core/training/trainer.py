@@ -33,9 +33,9 @@ from tqdm import tqdm
 
 from pssnet_core.data.store import GRID_KEYS, TRAINING_KEYS, DatasetReader
 from pssnet_core.models.base import CompletionModel, StepContext, fast_dtype
+from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
 from pssnet_core.models.config import ModelConfig, config_from_dict
 from pssnet_core.models.registry import default_config, get_model_class
-from pssnet_core.training.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
 from pssnet_core.training.logs import TRAIN_LOG, VAL_LOG, CsvLog, plot_curves, truncate_after_step
 
 BEST_METRICS = {"val_bce": min, "val_iou": max, "val_best_acc_mm": min}
