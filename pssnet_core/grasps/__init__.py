@@ -1,0 +1,104 @@
+"""Parallel-jaw grasps chosen against many sampled completions: grasps that hold whatever the hidden side is.
+
+One call from completions to ranked grasps::
+
+    grasps = plan_grasps(occupancy, observation.pose, observation.points, GraspConfig())
+    grasps.poses[0]        # (4, 4) best grasp in the camera frame
+    grasps.scores[0]       # fraction of the completions it holds for
+    position, quaternion = grasps.position_quaternions()   # (K, 3), (K, 4) xyzw, for geometry_msgs/Pose
+
+Pose convention (that of ``pssnet_interfaces/srv/SampleCompletions``): the origin lies between the
+fingertips, z is the approach direction (the hand moves along +z onto the object), y is the closing axis,
+x = y cross z (right-handed, REP 103). Widths are the opening the grasp needs, in metres.
+
+Everything internal works in *grid coordinates* (voxel units, z up; see :mod:`pssnet_core.geometry`).
+The gripper, in its own frame (origin between the fingertips, lengths in voxels), is three kinds of box:
+
+- closing region: the space between the fingers, ``|x| <= finger_width/2``, ``|y| <= width/2``,
+  ``-finger_length <= z <= 0``;
+- two fingers: ``|x| <= finger_width/2``, ``width/2 <= |y| <= width/2 + finger_thickness``, same z;
+- palm: ``|x| <= finger_width/2``, ``|y| <= max_opening/2 + finger_thickness``,
+  ``-finger_length - palm_depth <= z <= -finger_length`` (the palm spans the open hand whatever the width).
+
+How a grasp is judged against one completion (:func:`score_grasps`, module ``scoring``). A grasp *holds*
+for completion s when
+  1. its opening fits the gripper (``width <= max_opening``),
+  2. no part of the gripper reaches below the support plane (analytic, from the boxes' corners),
+  3. the closing region contains at least ``min_object_width`` of object along the closing axis, and
+  4. neither finger nor the palm overlaps an occupied voxel of s.
+Volumes are tested on lattices of sample points (spacing at most one voxel along every axis, faces
+included) transformed into the grid; a part "overlaps" s when any of its sample points falls in an
+occupied voxel of s, i.e. the part overlaps the occupied voxel cubes to within the lattice resolution.
+All completions are tested at once: the S occupancy grids are packed into one bit word per voxel (bit s =
+completion s), so each sample point costs one gather and a bitwise OR, whatever S.
+
+Score = fraction of completions the grasp holds for. Ties are broken by the *secondary* term in [0, 1]:
+``0.8 * pad contact + 0.2 * opening margin``. Pad contact is the mean, over the completions the grasp
+holds for, of the fraction of the two finger pads (finger-width x finger-length faces, sampled on the
+lattice) that touch the object when the fingers close on it: a pad cell touches when the object along its
+line across the closing region lies within one voxel of the pad's first contact. Deep grasps on faces
+square to the closing axis touch with the whole pad; fingertip grasps, and grasps across a box's corner or
+on a slanted face, touch with a small part. Opening margin is ``(max_opening - width) / max_opening``:
+spare opening tolerates pose error. Contact normals are not checked otherwise (voxel normals are coarse).
+
+Candidates (:func:`generate_candidates`, module ``candidates``). Anchors are the surface voxels of the union
+of the completions plus the observed points; orientations are a top approach (straight down, ``top_yaws``
+closing axes about the vertical) and side approaches (``side_yaws`` horizontal approach directions around the
+vertical, each with the closing axis horizontal and/or vertical: ``side_rolls``). For each (anchor,
+orientation) pair the hand slides along the approach until the palm would touch the union of the completions
+(one voxel short) or, approaching downwards, until the fingertips would reach the support plane. Then the
+closing axis is swept at full opening (half-voxel resolution): each completion's object extent along the
+closing axis is swept over twice the opening (half-voxel resolution): in each completion, the run of object
+along the closing axis through the anchor is measured; the completions whose run fits the gripper (with
+``clearance`` on both sides) define the needed opening, ``width = their combined extent + 2 clearance`` (the
+widest completion's extent when the runs share a side), and the grasp is re-centred on it. A completion whose
+run does not fit is not held by this grasp; a run stops at the first empty slice, so a mug's rim is pinched
+wall by wall rather than across the whole cup. Near-duplicates are dropped; at most ``max_candidates`` are
+kept (a seeded random subset). Deterministic given the seed.
+
+Support plane: the grid is gravity aligned, so the plane is the horizontal plane ``z = support_z`` (grid
+voxel units). Unless given, :func:`estimate_support_height` takes the lower of (a) the lowest observed point
+(or, without points, the bottom face of the lowest known-occupied layer) and (b) the median over completions
+of the bottom face of each completion's lowest occupied layer: the object rests on the plane, so the plane
+is at or below everything seen, and lower still where the completions say the hidden bottom reaches lower
+(the median ignores a single stray sample).
+
+Modules: ``config`` (options), ``results`` (returned types), ``lattice`` (the bit kernel), ``inputs`` (checks,
+support plane), ``candidates``, ``scoring``, ``planning`` (:func:`plan_grasps`, the single-completion
+baseline), ``plotting``.
+"""
+
+from pssnet_core.grasps.candidates import approach_orientations, generate_candidates
+from pssnet_core.grasps.config import GraspConfig, GraspError, GripperConfig
+from pssnet_core.grasps.inputs import estimate_support_height
+from pssnet_core.grasps.planning import plan_grasps, single_completion_choice
+from pssnet_core.grasps.plotting import gripper_lines, plot_grasps
+from pssnet_core.grasps.results import (
+    KIND_NAMES,
+    GraspCandidates,
+    GraspSet,
+    SingleCompletionChoice,
+    matrix_to_position_quaternion,
+)
+from pssnet_core.grasps.scoring import GraspChecks, check_grasps, score_grasps
+
+__all__ = [
+    "KIND_NAMES",
+    "GraspCandidates",
+    "GraspChecks",
+    "GraspConfig",
+    "GraspError",
+    "GraspSet",
+    "GripperConfig",
+    "SingleCompletionChoice",
+    "approach_orientations",
+    "check_grasps",
+    "estimate_support_height",
+    "generate_candidates",
+    "gripper_lines",
+    "matrix_to_position_quaternion",
+    "plan_grasps",
+    "plot_grasps",
+    "score_grasps",
+    "single_completion_choice",
+]

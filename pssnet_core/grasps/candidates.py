@@ -1,0 +1,173 @@
+"""Grasp candidates from the completions and the observed points (see the package docstring)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from scipy import ndimage
+
+from pssnet_core.geometry import GridPose
+from pssnet_core.grasps.config import GraspConfig, VoxelDims
+from pssnet_core.grasps.inputs import check_occupancy, check_points, estimate_support_height
+from pssnet_core.grasps.lattice import PackedGrids, box_lattice_index, lattice_count, lowest_point
+from pssnet_core.grasps.results import GraspCandidates
+
+
+def approach_orientations(config: GraspConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate orientations: (O, 3, 3) gripper axes (columns x, y, z) in the grid frame, (O,) kinds."""
+    rotations, kinds = [], []
+    down = np.array([0.0, 0.0, -1.0])
+    for i in range(config.top_yaws):
+        phi = math.pi * i / config.top_yaws
+        y = np.array([math.cos(phi), math.sin(phi), 0.0])
+        rotations.append(np.stack([np.cross(y, down), y, down], axis=1))
+        kinds.append(0)
+    up = np.array([0.0, 0.0, 1.0])
+    for j in range(config.side_yaws):
+        theta = 2.0 * math.pi * j / config.side_yaws
+        a = np.array([math.cos(theta), math.sin(theta), 0.0])
+        h = np.cross(up, a)
+        for roll in config.side_rolls:
+            psi = math.radians(float(roll))
+            y = math.cos(psi) * h + math.sin(psi) * up
+            rotations.append(np.stack([np.cross(y, a), y, a], axis=1))
+            kinds.append(1)
+    return np.asarray(rotations, dtype=np.float64), np.asarray(kinds, dtype=np.int8)
+
+
+def _anchors(union: np.ndarray, points_grid: np.ndarray | None) -> np.ndarray:
+    """Surface voxel centres of the union of completions, and observed points inside the grid."""
+    surface = union & ~ndimage.binary_erosion(union, border_value=0)
+    anchors = [np.argwhere(surface).astype(np.float64) + 0.5]
+    if points_grid is not None and len(points_grid):
+        n = union.shape[0]
+        voxels = np.unique(np.floor(points_grid).astype(np.int64), axis=0)
+        voxels = voxels[np.all((voxels >= 0) & (voxels < n), axis=1)]
+        extra = voxels[~surface[tuple(voxels.T)]] if len(voxels) else voxels
+        anchors.append(extra.astype(np.float64) + 0.5)
+    return np.concatenate(anchors, axis=0)
+
+
+def _run_through(slices: np.ndarray, centre: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, n, S) occupied slices -> first and last slice of each completion's run through slice ``centre``.
+
+    Returns lo, hi (K, S) and whether the centre slice is occupied (K, S); lo/hi are meaningless where not.
+    """
+    n = slices.shape[1]
+    empty = ~slices
+    left = empty[:, :centre + 1][:, ::-1]  # from the centre outwards to the left
+    lo = np.where(left.any(axis=1), centre + 1 - np.argmax(left, axis=1), 0)
+    right = empty[:, centre:]
+    hi = np.where(right.any(axis=1), centre + np.argmax(right, axis=1) - 1, n - 1)
+    return lo, hi, slices[:, centre]
+
+
+def generate_candidates(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
+                        config: GraspConfig | None = None, support_z: float | None = None,
+                        known_occupied: np.ndarray | None = None,
+                        allowed: Callable[[GraspCandidates], np.ndarray] | None = None) -> GraspCandidates:
+    """Grasp candidates from the completions (and the observed points); see the package docstring.
+
+    Args:
+        occupancy: (S, N, N, N) bool completions.
+        pose: grid pose (grid -> camera).
+        points: (M, 3) observed points in the camera frame (more anchors; support plane), or None.
+        config: options (default :class:`GraspConfig`).
+        support_z: support-plane height in grid voxels; None = :func:`estimate_support_height`.
+        known_occupied: (N, N, N) observed voxels, for the support plane when ``points`` is None.
+        allowed: candidates (grid coordinates, final widths) -> (K,) bool, the ones the surroundings allow
+            (e.g. approaches clear of known clutter); applied before the ``max_candidates`` subset.
+
+    Returns:
+        At most ``config.max_candidates`` candidates in grid coordinates, in a deterministic order.
+    """
+    config = config or GraspConfig()
+    occupancy = check_occupancy(occupancy, pose)
+    points = check_points(points)
+    if support_z is None:
+        support_z = estimate_support_height(occupancy, pose, points, known_occupied)
+    return candidates_from_packed(PackedGrids(occupancy), occupancy.any(axis=0), pose, points, config, support_z,
+                                  allowed)
+
+
+def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose, points: np.ndarray | None,
+                           config: GraspConfig, support_z: float,
+                           allowed: Callable[[GraspCandidates], np.ndarray] | None = None) -> GraspCandidates:
+    """:func:`generate_candidates` on checked input and completions packed once (the planner scores on them too).
+
+    Args:
+        bits: the completions, packed.
+        union: (N, N, N) bool, voxels occupied in any completion.
+        pose, points, config, support_z, allowed: as :func:`generate_candidates` (points checked, or None).
+    """
+    dims = VoxelDims.of(config, pose.voxel_size)
+    points_grid = pose.camera_to_grid(points) if points is not None else None
+    anchors = _anchors(union, points_grid)
+    rotations_all, kinds_all = approach_orientations(config)
+    if len(anchors) == 0:
+        return GraspCandidates.empty()
+    rng = np.random.default_rng(config.seed)
+    total = len(anchors) * len(rotations_all)
+    raw = int(min(total, math.ceil(config.oversample * config.max_candidates)))
+    pairs = np.arange(total) if raw == total else np.sort(rng.choice(total, size=raw, replace=False))
+    anchor_id, orient_id = np.divmod(pairs, len(rotations_all))
+    p = anchors[anchor_id]
+    rot = rotations_all[orient_id]
+    approach = rot[:, :, 2]
+
+    # 1. Slide along the approach until the palm (one voxel short) meets the union of the completions.
+    occupied_any = bits.occupied_in_any()
+    fl, fw, ft, wmax = dims.finger_length, dims.finger_width, dims.finger_thickness, dims.max_opening
+    reach = fl + dims.palm_depth
+    n_u = lattice_count(reach, 1.0)
+    counts = (lattice_count(fw, 1.0), lattice_count(wmax + 2 * ft, 1.0), n_u)
+    column = box_lattice_index(bits, p, rot, np.array([0.0, 0.0, -reach / 2]),
+                               np.array([fw / 2, wmax / 2 + ft, reach / 2]), counts)
+    hit_rows = occupied_any[column].any(axis=(1, 2))  # (K, n_u): u from -reach (far behind) to 0 (anchor)
+    u_values = np.linspace(-reach, 0.0, n_u)
+    first = np.where(hit_rows.any(axis=1), u_values[np.argmax(hit_rows, axis=1)], 0.0)
+    t = first + fl - 1.0
+    # Approaching downwards: stop where the lowest gripper part would reach the support plane.
+    low0 = lowest_point(p, rot, np.full(len(p), wmax), dims) - p[:, 2]  # lowest z relative to the origin
+    az = approach[:, 2]
+    going_down = az < -1e-6
+    limit = (p[:, 2] + low0 - (support_z + dims.plane_clearance)) / np.where(going_down, -az, 1.0)
+    t = np.where(going_down, np.minimum(t, limit), t)
+    keep = t > 0.0
+    p, rot, t, orient_id = p[keep], rot[keep], t[keep], orient_id[keep]
+    origins = p + t[:, None] * rot[:, :, 2]
+
+    # 2. Sweep the closing axis (twice the opening, half-voxel steps); the completions whose run of object
+    # through the anchor fits the gripper set the width and the centre.
+    half_n = int(math.floor(wmax / 0.5 + 1e-6))
+    n_y = 2 * half_n + 1
+    # Exact half-voxel spacing (extents come in half voxels), offset by a quarter voxel so that, along grid
+    # axes, samples never sit on voxel faces (anchors are voxel centres): edges are then found to +-0.25.
+    ys = (np.arange(n_y) - half_n) * 0.5 + 0.25
+    sweep = box_lattice_index(bits, origins, rot, np.array([0.0, 0.25, -fl / 2]),
+                              np.array([fw / 2, half_n * 0.5, fl / 2]),
+                              (lattice_count(fw, 1.0), n_y, lattice_count(fl, 1.0)))
+    slices = bits.unpack(bits.reduce_or(bits.gather(sweep), axis=(1, 3)))  # (K, n_y, S)
+    lo, hi, has = _run_through(slices, half_n)
+    extent = ys[hi] - ys[lo] + 0.5
+    fits = has & (lo > 0) & (hi < n_y - 1) & (extent + 2 * dims.clearance <= wmax + 1e-9)
+    ok = fits.any(axis=1)
+    lo_u = np.where(ok, np.where(fits, lo, n_y).min(axis=1), 0)
+    hi_u = np.where(ok, np.where(fits, hi, -1).max(axis=1), 0)
+    widths = ys[hi_u] - ys[lo_u] + 0.5 + 2 * dims.clearance
+    ok &= widths <= wmax + 1e-9
+    origins = origins + (0.5 * (ys[lo_u] + ys[hi_u]))[:, None] * rot[:, :, 1]
+    origins, rot, widths, orient_id = origins[ok], rot[ok], widths[ok], orient_id[ok]
+    if allowed is not None:
+        keep = np.asarray(allowed(GraspCandidates(origins, rot, widths, kinds_all[orient_id])), dtype=bool)
+        origins, rot, widths, orient_id = origins[keep], rot[keep], widths[keep], orient_id[keep]
+
+    # 3. Drop near-duplicates (same orientation, origin within half a voxel), keep a seeded subset.
+    key = np.concatenate([orient_id[:, None], np.round(origins * 2.0).astype(np.int64)], axis=1)
+    _, first_index = np.unique(key, axis=0, return_index=True)
+    index = np.sort(first_index)
+    if len(index) > config.max_candidates:
+        index = np.sort(rng.choice(index, size=config.max_candidates, replace=False))
+    return GraspCandidates(origins[index], rot[index], widths[index], kinds_all[orient_id[index]])

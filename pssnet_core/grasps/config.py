@@ -1,0 +1,124 @@
+"""Gripper and planning options (metres, validated on construction) and the gripper's sizes in voxels."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class GraspError(ValueError):
+    """Grasp planning input or configuration is invalid; the message says exactly what is wrong."""
+
+
+@dataclass(frozen=True)
+class GripperConfig:
+    """A parallel-jaw gripper (defaults: about a Franka Hand; a Robotiq 2F-85 opens 0.085 m).
+
+    Attributes:
+        max_opening: largest distance between the finger pads (metres).
+        finger_length: how far the fingers reach from the palm to the fingertips along the approach (metres).
+        finger_width: finger extent across the closing plane, along the gripper x axis (metres).
+        finger_thickness: finger extent along the closing axis (metres).
+        palm_depth: thickness of the palm (hand body) behind the fingers along the approach (metres).
+        min_object_width: less object than this between the fingers along the closing axis is not held (metres).
+    """
+
+    max_opening: float = 0.08
+    finger_length: float = 0.05
+    finger_width: float = 0.02
+    finger_thickness: float = 0.01
+    palm_depth: float = 0.02
+    min_object_width: float = 0.005
+
+    def __post_init__(self) -> None:
+        values = {"max_opening": self.max_opening, "finger_length": self.finger_length,
+                  "finger_width": self.finger_width, "finger_thickness": self.finger_thickness,
+                  "palm_depth": self.palm_depth, "min_object_width": self.min_object_width}
+        for name, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise GraspError(f"gripper {name} must be a finite number of metres, got {value!r}")
+        if not 0.005 <= self.max_opening <= 0.5:
+            raise GraspError(f"gripper max_opening must be in [0.005, 0.5] m, got {self.max_opening}")
+        for name in ("finger_length", "finger_width", "finger_thickness", "palm_depth"):
+            if not 0.001 <= values[name] <= 0.5:
+                raise GraspError(f"gripper {name} must be in [0.001, 0.5] m, got {values[name]}")
+        if not 0.0 <= self.min_object_width < self.max_opening:
+            raise GraspError(f"gripper min_object_width must be in [0, max_opening={self.max_opening}) m, "
+                             f"got {self.min_object_width}")
+
+
+@dataclass(frozen=True)
+class GraspConfig:
+    """Candidate generation and scoring options.
+
+    Attributes:
+        gripper: the gripper.
+        max_candidates: at most this many candidates are scored.
+        top_yaws: closing-axis angles of the top (straight-down) approach, evenly over 180 degrees; 0 = none.
+        side_yaws: horizontal approach directions, evenly over 360 degrees; 0 = no side grasps.
+        side_rolls: closing-axis angles (degrees) of side grasps about the approach: 0 = horizontal,
+            90 = vertical.
+        clearance: free space left between each finger pad and the widest completion (metres).
+        plane_clearance: every gripper part stays at least this far above the support plane (metres).
+        oversample: raw (anchor, orientation) pairs generated per kept candidate, before de-duplication.
+        seed: seed of the anchor/orientation sampling and of the final subset.
+    """
+
+    gripper: GripperConfig = field(default_factory=GripperConfig)
+    max_candidates: int = 500
+    top_yaws: int = 8
+    side_yaws: int = 12
+    side_rolls: tuple[float, ...] = (0.0, 90.0)
+    clearance: float = 0.005
+    plane_clearance: float = 0.0
+    oversample: float = 3.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.gripper, GripperConfig):
+            raise GraspError(f"gripper must be a GripperConfig, got {type(self.gripper).__name__}")
+        for name in ("max_candidates", "top_yaws", "side_yaws", "seed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer):
+                raise GraspError(f"{name} must be an integer, got {value!r}")
+        if not 1 <= self.max_candidates <= 100_000:
+            raise GraspError(f"max_candidates must be in [1, 100000], got {self.max_candidates}")
+        if not 0 <= self.top_yaws <= 180 or not 0 <= self.side_yaws <= 360:
+            raise GraspError(f"top_yaws must be in [0, 180] and side_yaws in [0, 360], got {self.top_yaws} "
+                             f"and {self.side_yaws}")
+        rolls = tuple(float(r) for r in self.side_rolls)
+        if not all(math.isfinite(r) for r in rolls):
+            raise GraspError(f"side_rolls must be finite degrees, got {self.side_rolls}")
+        if self.top_yaws == 0 and (self.side_yaws == 0 or not rolls):
+            raise GraspError("no approach direction: set top_yaws > 0, or side_yaws > 0 with side_rolls")
+        if not 0.0 <= self.clearance < self.gripper.max_opening / 2:
+            raise GraspError(f"clearance must be in [0, max_opening/2) m, got {self.clearance}")
+        if not 0.0 <= self.plane_clearance <= 0.1:
+            raise GraspError(f"plane_clearance must be in [0, 0.1] m, got {self.plane_clearance}")
+        if not 1.0 <= self.oversample <= 20.0:
+            raise GraspError(f"oversample must be in [1, 20], got {self.oversample}")
+        if self.seed < 0:
+            raise GraspError(f"seed must be >= 0, got {self.seed}")
+
+
+@dataclass(frozen=True)
+class VoxelDims:
+    """Gripper dimensions in voxels."""
+
+    max_opening: float
+    finger_length: float
+    finger_width: float
+    finger_thickness: float
+    palm_depth: float
+    min_object_width: float
+    clearance: float
+    plane_clearance: float
+
+    @classmethod
+    def of(cls, config: GraspConfig, voxel_size: float) -> VoxelDims:
+        g = config.gripper
+        return cls(g.max_opening / voxel_size, g.finger_length / voxel_size, g.finger_width / voxel_size,
+                   g.finger_thickness / voxel_size, g.palm_depth / voxel_size, g.min_object_width / voxel_size,
+                   config.clearance / voxel_size, config.plane_clearance / voxel_size)

@@ -1,0 +1,91 @@
+"""Completions in, ranked grasps out: the one call the pipeline, the node and the trials make."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from pssnet_core.geometry import GridPose
+from pssnet_core.grasps.candidates import candidates_from_packed
+from pssnet_core.grasps.config import GraspConfig, GraspError
+from pssnet_core.grasps.inputs import check_occupancy, check_points, support_height_of
+from pssnet_core.grasps.lattice import PackedGrids
+from pssnet_core.grasps.results import KIND_NAMES, GraspCandidates, GraspSet, SingleCompletionChoice
+from pssnet_core.grasps.scoring import checks_from_packed, holds_and_secondary, score_grasps
+
+
+def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
+                  support_z: float) -> GraspSet:
+    scores = holds.mean(axis=1) if holds.shape[1] else np.zeros(len(candidates))
+    order = np.lexsort((-secondary, -scores))  # score first, then the secondary term; stable
+    c = candidates.subset(order)
+    poses = np.tile(np.eye(4), (len(c), 1, 1))
+    poses[:, :3, :3] = np.einsum("ij,kjl->kil", pose.rotation, c.rotations)
+    poses[:, :3, 3] = pose.grid_to_camera(c.origins) if len(c) else np.zeros((0, 3))
+    kinds = np.array([KIND_NAMES[i] for i in c.kinds], dtype=object)
+    return GraspSet(poses=poses, widths=c.widths * pose.voxel_size, scores=scores[order], holds=holds[order],
+                    secondary=secondary[order], kinds=kinds, grid=c, support_z=float(support_z),
+                    voxel_size=float(pose.voxel_size))
+
+
+def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
+                config: GraspConfig | None = None, known_occupied: np.ndarray | None = None,
+                support_z: float | None = None,
+                allowed: Callable[[GraspCandidates], np.ndarray] | None = None) -> GraspSet:
+    """Completions in, grasps ranked by the fraction of completions they hold for out.
+
+    Args:
+        occupancy: (S, N, N, N) bool sampled completions (floats are thresholded at 0.5).
+        pose: grid pose of the completions (grid -> camera frame), e.g. ``Observation.pose``.
+        points: (M, 3) observed object points in the camera frame (``Observation.points``), or None.
+        config: gripper, candidate and scoring options (default :class:`GraspConfig`).
+        known_occupied: (N, N, N) observed voxels; places the support plane when ``points`` is None.
+        support_z: support-plane height in grid voxels; None = :func:`estimate_support_height`.
+        allowed: restricts the candidates (see :func:`generate_candidates`).
+
+    Returns:
+        The scored candidates, best first (possibly empty when no completion has any voxel the gripper fits).
+
+    Raises:
+        GraspError: malformed input (the message says what is wrong).
+    """
+    config = config or GraspConfig()
+    occupancy = check_occupancy(occupancy, pose)
+    points = check_points(points)
+    if support_z is None:
+        support_z = support_height_of(occupancy, pose, points, known_occupied)
+    # Packed once: candidates and scores read the same bit words.
+    bits = PackedGrids(occupancy)
+    candidates = candidates_from_packed(bits, occupancy.any(axis=0), pose, points, config, support_z, allowed)
+    checks = checks_from_packed(candidates, bits, pose, support_z, config)
+    holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
+    return _to_grasp_set(candidates, holds, secondary, pose, support_z)
+
+
+def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, points: np.ndarray | None = None,
+                             config: GraspConfig | None = None, known_occupied: np.ndarray | None = None,
+                             support_z: float | None = None) -> SingleCompletionChoice:
+    """The grasp that completion ``index`` alone would choose, re-scored against all the completions.
+
+    Candidates are generated and ranked from that one completion (and the observed points), exactly as
+    :func:`plan_grasps` would if the network had returned only it; the support plane is the one estimated
+    from all completions, so the two choices are judged alike.
+    """
+    config = config or GraspConfig()
+    occupancy = check_occupancy(occupancy, pose)
+    if not 0 <= index < occupancy.shape[0]:
+        raise GraspError(f"completion index {index} is out of range [0, {occupancy.shape[0]})")
+    points = check_points(points)
+    if support_z is None:
+        support_z = support_height_of(occupancy, pose, points, known_occupied)
+    alone = plan_grasps(occupancy[index:index + 1], pose, points, config, support_z=support_z)
+    if len(alone) == 0 or alone.scores[0] <= 0.0:
+        empty = _to_grasp_set(GraspCandidates.empty(), np.zeros((0, occupancy.shape[0]), bool), np.zeros(0),
+                              pose, support_z)
+        return SingleCompletionChoice(index=index, grasp=empty, score_alone=0.0, score_all=0.0)
+    best = alone.grid.subset(np.array([0]))
+    holds, secondary = score_grasps(best, occupancy, pose, support_z, config)
+    grasp = _to_grasp_set(best, holds, secondary, pose, support_z)
+    return SingleCompletionChoice(index=index, grasp=grasp, score_alone=float(alone.scores[0]),
+                                  score_all=float(grasp.scores[0]))

@@ -1,0 +1,143 @@
+"""Every grasp checked against every completion at once (see the package docstring for the rules)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pssnet_core.geometry import GridPose
+from pssnet_core.grasps.config import GraspConfig, VoxelDims
+from pssnet_core.grasps.inputs import check_occupancy
+from pssnet_core.grasps.lattice import PackedGrids, box_lattice_index, lattice_count, lowest_point
+from pssnet_core.grasps.results import GraspCandidates
+
+
+def _extents(slices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(..., n, S) occupied slices -> first, last occupied slice and whether any, each (..., S)."""
+    has = slices.any(axis=-2)
+    n = slices.shape[-2]
+    lo = np.argmax(slices, axis=-2)
+    hi = n - 1 - np.argmax(slices[..., ::-1, :], axis=-2)
+    return lo, hi, has
+
+
+@dataclass
+class GraspChecks:
+    """Why each grasp holds or not, per completion (see the package docstring for the rules).
+
+    Attributes:
+        fits: (K,) the opening fits the gripper.
+        above: (K,) no gripper part reaches below the support plane.
+        contains: (K, S) the closing region holds at least ``min_object_width`` of object.
+        finger_hit: (K, S) a finger overlaps the completion.
+        palm_hit: (K, S) the palm overlaps the completion.
+        coverage: (K, S) fraction of the finger pads touching the object when the fingers close (0 if none).
+    """
+
+    fits: np.ndarray
+    above: np.ndarray
+    contains: np.ndarray
+    finger_hit: np.ndarray
+    palm_hit: np.ndarray
+    coverage: np.ndarray
+
+    @property
+    def holds(self) -> np.ndarray:
+        """(K, S) the grasp holds for the completion."""
+        return (self.fits & self.above)[:, None] & self.contains & ~self.finger_hit & ~self.palm_hit
+
+
+def check_grasps(candidates: GraspCandidates, occupancy: np.ndarray, pose: GridPose, support_z: float,
+                 config: GraspConfig | None = None) -> GraspChecks:
+    """Every test of every grasp against every completion, vectorised over grasps x completions.
+
+    Args:
+        candidates: grasps in grid coordinates (widths in voxels).
+        occupancy: (S, N, N, N) bool completions.
+        pose: the grid pose (for the voxel size).
+        support_z: support-plane height (grid voxels).
+        config: gripper and clearances.
+    """
+    config = config or GraspConfig()
+    return checks_from_packed(candidates, PackedGrids(check_occupancy(occupancy, pose)), pose, support_z, config)
+
+
+def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: GridPose, support_z: float,
+                       config: GraspConfig) -> GraspChecks:
+    """:func:`check_grasps` on completions packed once (the planner generated the candidates on them)."""
+    k, s = len(candidates), bits.num
+    if k == 0:
+        none = np.zeros((0, s), dtype=bool)
+        return GraspChecks(np.zeros(0, bool), np.zeros(0, bool), none, none, none, np.zeros((0, s)))
+    dims = VoxelDims.of(config, pose.voxel_size)
+    fl, fw, ft, wmax = dims.finger_length, dims.finger_width, dims.finger_thickness, dims.max_opening
+    origins = np.asarray(candidates.origins, dtype=np.float64)
+    rot = np.asarray(candidates.rotations, dtype=np.float64)
+    widths = np.asarray(candidates.widths, dtype=np.float64)
+    nx, nz = lattice_count(fw, 1.0), lattice_count(fl, 1.0)
+
+    fits = widths <= wmax + 1e-9
+    above = lowest_point(origins, rot, widths, dims) >= support_z + dims.plane_clearance - 1e-6
+
+    # Closing region: the object's extent along the closing axis, and which pad cells face object.
+    n_y = lattice_count(wmax, 1.0)
+    closing = bits.gather(box_lattice_index(bits, origins, rot, np.array([0.0, 0.0, -fl / 2]),
+                                            np.stack([np.full(k, fw / 2), widths / 2, np.full(k, fl / 2)], axis=1),
+                                            (nx, n_y, nz)))
+    slices = bits.unpack(bits.reduce_or(closing, axis=(1, 3)))  # (K, n_y, S)
+    lo, hi, has = _extents(slices)
+    extent = (hi - lo + 1) * (widths / (n_y - 1))[:, None]
+    contains = has & (extent >= dims.min_object_width - 1e-9)
+    # Pad contact: closing each finger until it touches completion s (slice lo / hi), the pad cells whose
+    # column meets object within one voxel of that first touch. Prefix ORs along y give "object at or before
+    # this slice" per cell for all completions at once; then bit s is read at completion s's touch slice.
+    tol = np.ceil(1.0 / (widths / (n_y - 1)) - 1e-9).astype(np.int64)[:, None]  # slices in one voxel
+    coverage = np.zeros((k, s))
+    for words, touch in ((closing, lo), (closing[:, :, ::-1], n_y - 1 - hi)):
+        prefix = np.bitwise_or.accumulate(words, axis=2)
+        coverage += bits.bit_at(prefix, np.clip(touch + tol, 0, n_y - 1)).mean(axis=(2, 3))
+    coverage = np.where(has, coverage / 2.0, 0.0)
+
+    # Fingers and palm.
+    finger_hit = np.zeros((k, s), dtype=bool)
+    for sign in (-1.0, 1.0):
+        centre = np.stack([np.zeros(k), sign * (widths / 2 + ft / 2), np.full(k, -fl / 2)], axis=1)
+        words = bits.gather(box_lattice_index(bits, origins, rot, centre, np.array([fw / 2, ft / 2, fl / 2]),
+                                              (nx, lattice_count(ft, 1.0), nz)))
+        finger_hit |= bits.unpack(bits.reduce_or(words, axis=(1, 2, 3)))
+    palm = bits.gather(box_lattice_index(bits, origins, rot, np.array([0.0, 0.0, -fl - dims.palm_depth / 2]),
+                                         np.array([fw / 2, wmax / 2 + ft, dims.palm_depth / 2]),
+                                         (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0))))
+    palm_hit = bits.unpack(bits.reduce_or(palm, axis=(1, 2, 3)))
+    return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage)
+
+
+def score_grasps(candidates: GraspCandidates, occupancy: np.ndarray, pose: GridPose, support_z: float,
+                 config: GraspConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each grasp holds for each completion, vectorised over grasps x completions.
+
+    Args:
+        candidates: grasps in grid coordinates (widths in voxels).
+        occupancy: (S, N, N, N) bool completions.
+        pose: the grid pose (for the voxel size).
+        support_z: support-plane height (grid voxels).
+        config: gripper and clearances.
+
+    Returns:
+        holds (K, S) bool, and the secondary tie-break term (K,) in [0, 1] (see the package docstring).
+    """
+    config = config or GraspConfig()
+    return holds_and_secondary(check_grasps(candidates, occupancy, pose, support_z, config), candidates, config,
+                               pose.voxel_size)
+
+
+def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config: GraspConfig,
+                        voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The (K, S) holds of ``checks`` and the secondary tie-break term (K,) of :func:`score_grasps`."""
+    holds = checks.holds
+    n_held = holds.sum(axis=1)
+    coverage = np.where(n_held > 0, (checks.coverage * holds).sum(axis=1) / np.maximum(n_held, 1), 0.0)
+    wmax = config.gripper.max_opening / voxel_size
+    margin = np.clip((wmax - np.asarray(candidates.widths, dtype=np.float64)) / wmax, 0.0, 1.0)
+    return holds, 0.8 * coverage + 0.2 * margin
