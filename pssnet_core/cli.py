@@ -17,6 +17,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "pssnet_core.evaluation.cli",
     "pssnet_core.trials.cli",
     "pssnet_core.bench",
+    "pssnet_core.bag_cli",
 )
 
 

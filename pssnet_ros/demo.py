@@ -6,7 +6,8 @@
 2. starts ``synthetic_camera`` in another process: a mug on a table, its handle hidden, at a few Hz;
 3. calls ``/pssnet/sample_completions`` from this process with an empty depth image, so the node completes
    the latest synchronised depth/mask/camera_info it received on its topics;
-4. writes ``completions.png`` (the observation, several sampled completions, the best grasps) to ``--out``,
+4. writes ``completions.png`` (the observation, several sampled completions, the best grasps) and ``demo.mcap``
+   (the depth/mask/camera_info set the node completed and its answer as the node's four topics) to ``--out``,
    prints a summary (samples, points, latency), stops both processes with SIGINT and exits 0.
 
 Everything runs on its own ROS domain with discovery limited to this machine.
@@ -23,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pssnet_ros.bag import write_demo_bag
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
 from pssnet_ros.processes import RosProcess, free_domain_id, ros_env, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
@@ -183,6 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         response, latencies = run_client(domain, args.samples, args.calls, args.timeout)
         out = args.out / "completions.png"
         write_figure(out, view, response)
+        bag = write_demo_bag(args.out / "demo.mcap", view, response)
         sizes = [c.width * c.height for c in response.completions]
         hidden = "hidden" if view.handle_visible is False else "visible" if view.handle_visible else "absent"
         print(f"[demo] completions of test-split mug {args.mug_seed} (handle {hidden}), from the node's topics:")
@@ -195,6 +198,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{np.median(latencies) * 1000:.0f} ms, min {np.min(latencies) * 1000:.0f} ms")
         print(f"[demo]   node: {response.message}")
         print(f"[demo]   figure: {out}")
+        print(f"[demo]   bag: {bag} (the set the node completed and its answer, as topics)")
         code = 0
     except (DemoError, TimeoutError, RuntimeError) as error:
         print(f"[demo] error: {error}", file=sys.stderr)

@@ -22,6 +22,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
 
 from pssnet_core.data.scenes import RenderedView
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image
@@ -58,6 +59,14 @@ def render_scene(options: SceneOptions) -> RenderedView:
                        tilt_deg=options.tilt_deg)
 
 
+def view_messages(view: RenderedView, depth_encoding: str = "32FC1", header: Header | None = None
+                  ) -> tuple[Image, Image, CameraInfo]:
+    """The (depth, mask, camera_info) messages the camera publishes for ``view`` (32FC1 metres or 16UC1 mm)."""
+    depth = view.depth if depth_encoding == "32FC1" else np.rint(view.depth * 1000.0).astype(np.uint16)
+    return (numpy_to_image(depth, depth_encoding, header), numpy_to_image(view.mask, "mono8", header),
+            intrinsics_to_camera_info(view.intrinsics, header))
+
+
 class SyntheticCamera(Node):
     """Publishes one rendered view at a fixed rate with fresh stamps."""
 
@@ -67,9 +76,7 @@ class SyntheticCamera(Node):
         qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE) if reliable else qos_profile_sensor_data
         self._pubs = [self.create_publisher(Image, "depth", qos), self.create_publisher(Image, "mask", qos),
                       self.create_publisher(CameraInfo, "camera_info", qos)]
-        depth = view.depth if depth_encoding == "32FC1" else np.rint(view.depth * 1000.0).astype(np.uint16)
-        self._messages = (numpy_to_image(depth, depth_encoding), numpy_to_image(view.mask, "mono8"),
-                          intrinsics_to_camera_info(view.intrinsics))
+        self._messages = view_messages(view, depth_encoding)
         self._count, self._sent = count, 0
         self.create_timer(1.0 / rate_hz, self._tick)
 

@@ -1,0 +1,131 @@
+"""What the completion node makes of messages, without a node: input messages -> pipeline -> output messages.
+
+The node, ``pssnet bag`` and the demo's recording all go through these functions, so that a completion
+computed offline from a bag is, field for field, what the node would have published for the same set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import Pose, PoseArray
+from pssnet_interfaces.msg import GraspCandidates
+from pssnet_interfaces.srv import SampleCompletions
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+
+from pssnet_core.pipeline import CompletionPipeline, PipelineResult
+from pssnet_ros import conversions
+from pssnet_ros.params import pipeline_config
+
+#: The node's input streams (relative topic names of its subscriptions) and its synchroniser's queue per stream.
+STREAMS: tuple[str, ...] = ("depth", "mask", "camera_info")
+SYNC_QUEUE_SIZE = 10
+
+#: The node's publications (``~/name`` of the node ``pssnet``) as absolute topic names, in publishing order.
+OUTPUT_TOPICS: dict[str, str] = {
+    "completions": "/pssnet/completions",
+    "known_occupied": "/pssnet/known_occupied",
+    "grasps": "/pssnet/grasps",
+    "grasp_candidates": "/pssnet/grasp_candidates",
+}
+
+
+@dataclass(frozen=True)
+class OutputMessages:
+    """The four messages the node publishes for one completed set (field names are keys of OUTPUT_TOPICS).
+
+    Attributes:
+        completions: every sample's voxel centres, x, y, z float32 + ``sample`` uint32.
+        known_occupied: the observed voxels' centres.
+        grasps: grasp poses, best first.
+        grasp_candidates: the same poses with their scores and widths.
+    """
+
+    completions: PointCloud2
+    known_occupied: PointCloud2
+    grasps: PoseArray
+    grasp_candidates: GraspCandidates
+
+    def by_topic(self) -> dict[str, Any]:
+        """Topic name -> message, in publishing order."""
+        return {topic: getattr(self, name) for name, topic in OUTPUT_TOPICS.items()}
+
+
+def stamp_ns(header: Header) -> int:
+    """A header's stamp in nanoseconds (the synchroniser's time axis)."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def load_pipeline(values: dict[str, Any]) -> CompletionPipeline:
+    """The node's pipeline for a complete, valid set of parameter values (``params.check_values`` passed).
+
+    Raises:
+        ValueError: the model cannot be loaded (missing or corrupt checkpoint, unavailable device), or the
+            parameters do not fit it; the message says which.
+    """
+    try:
+        config = pipeline_config(values)
+    except ValueError as error:
+        raise ValueError(f"invalid parameters: {error}") from None
+    try:  # CheckpointError is a ValueError, and so is an unavailable device
+        pipeline = CompletionPipeline.from_checkpoint(values["model_path"] or None, None, device=values["device"],
+                                                      threads=values["threads"] or None)
+    except ValueError as error:
+        raise ValueError(f"cannot load the completion model: {error}") from None
+    try:
+        pipeline.config = config
+    except ValueError as error:
+        raise ValueError(f"invalid parameters for this model: {error}") from None
+    return pipeline
+
+
+def complete_messages(pipeline: CompletionPipeline, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo,
+                      depth_scale: float, num_samples: int, compute_grasps: bool) -> tuple[PipelineResult, Header]:
+    """Converts one depth/mask/camera_info set and completes it; returns the result and the header outputs carry.
+
+    Raises:
+        ValueError: a message cannot be converted or the pipeline refuses the input (the message says why).
+    """
+    depth = conversions.depth_to_metres(depth_msg, depth_scale)
+    mask = conversions.mask_to_numpy(mask_msg)
+    intrinsics = conversions.camera_info_to_intrinsics(info_msg)
+    return pipeline.run(depth, mask, intrinsics, num_samples, compute_grasps), depth_msg.header
+
+
+def grasp_fields(result: PipelineResult) -> tuple[list[Pose], list[float], list[float]]:
+    """Poses, scores and widths of the result's grasps (empty lists when grasps were not computed)."""
+    grasps = result.grasps
+    if grasps is None or len(grasps.scores) == 0:
+        return [], [], []
+    poses = [conversions.matrix_to_pose(m) for m in grasps.poses]
+    return poses, [float(s) for s in grasps.scores], [float(w) for w in grasps.widths]
+
+
+def output_messages(result: PipelineResult, header: Header) -> OutputMessages:
+    """The node's continuous-mode publications for one result, all carrying ``header``."""
+    points, index = result.merged()
+    poses, scores, widths = grasp_fields(result)
+    return OutputMessages(
+        completions=conversions.points_to_pointcloud2(points, header, index),
+        known_occupied=conversions.points_to_pointcloud2(result.known_occupied, header),
+        grasps=PoseArray(header=header, poses=poses),
+        grasp_candidates=GraspCandidates(header=header, poses=poses, scores=scores, widths=widths))
+
+
+def outputs_from_response(response: SampleCompletions.Response) -> OutputMessages:
+    """The publications the node would have made for a successful service response (its samples merged into
+    one cloud with a ``sample`` field), e.g. to record a service exchange next to topic output."""
+    header = response.header
+    clouds = [conversions.pointcloud2_to_numpy(c)[0] for c in response.completions]
+    points = np.concatenate([np.zeros((0, 3)), *clouds]).astype(np.float32)
+    index = np.concatenate([np.zeros(0, np.uint32), *(np.full(len(c), i, np.uint32) for i, c in enumerate(clouds))])
+    poses = list(response.grasps.poses)
+    return OutputMessages(
+        completions=conversions.points_to_pointcloud2(points, header, index),
+        known_occupied=response.known_occupied,
+        grasps=PoseArray(header=header, poses=poses),
+        grasp_candidates=GraspCandidates(header=header, poses=poses, scores=list(response.grasp_scores),
+                                         widths=list(response.grasp_widths)))
