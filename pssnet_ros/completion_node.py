@@ -44,6 +44,7 @@ from pssnet_core.pipeline import CompletionPipeline, PipelineResult
 from pssnet_ros import conversions
 from pssnet_ros.newest_slot import NewestSlot
 from pssnet_ros.params import PARAMETERS, check_values, markdown_table, pipeline_config
+from pssnet_ros.processes import clean_stale_shm
 from pssnet_ros.spinning import spin_until_shutdown
 from pssnet_ros.sync import StampSynchronizer, SyncedSet
 
@@ -57,6 +58,11 @@ INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=Rel
 #: Reliable publishers match reliable and best-effort subscribers alike.
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: Requests wait in DDS while the node answers one at a time; the default services QoS keeps only the last 10,
+#: so with more waiting clients the oldest requests were dropped unanswered (16 clients: 41 of 755 lost,
+#: RELIABILITY.md). 64 waiting 640x480 requests hold about 100 MB at most.
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
 
 
 class StartupError(RuntimeError):
@@ -104,7 +110,7 @@ class CompletionNode(Node):
                                  callback_group=topics)
         # Inference has its own group so that topic callbacks keep flowing while a request runs.
         self.create_service(SampleCompletions, "~/sample_completions", self._on_sample_completions,
-                            callback_group=MutuallyExclusiveCallbackGroup())
+                            qos_profile=SERVICE_QOS, callback_group=MutuallyExclusiveCallbackGroup())
         self.create_service(Trigger, "~/get_stats", self._on_get_stats, callback_group=topics)
         self._pub_completions = self.create_publisher(PointCloud2, "~/completions", OUTPUT_QOS)
         self._pub_known = self.create_publisher(PointCloud2, "~/known_occupied", OUTPUT_QOS)
@@ -367,6 +373,9 @@ def main(args: Sequence[str] | None = None) -> int:
     if any(a in ("-h", "--help") for a in plain_args):
         print(usage())
         return 0
+    # A predecessor killed with -9 leaves its Fast DDS shared memory (32 MiB per participant): remove what
+    # belongs to dead processes only, before this process's own participant exists.
+    shm = clean_stale_shm()
     rclpy.init(args=argv)
     node: CompletionNode | None = None
     code = 0
@@ -374,6 +383,9 @@ def main(args: Sequence[str] | None = None) -> int:
         node = CompletionNode()
         executor = MultiThreadedExecutor(num_threads=4)
         executor.add_node(node)
+        if shm.removed:
+            node.get_logger().info(f"removed {len(shm.removed)} stale Fast DDS shared-memory files of dead "
+                                   f"processes ({shm.freed_bytes / 2**20:.1f} MiB): {' '.join(shm.removed)}")
         node.get_logger().info(f"ready: serving {node.resolve_service_name('~/sample_completions')}, continuous "
                                f"{'on' if node.get_parameter('continuous').value else 'off'}")
         spin_until_shutdown(executor)

@@ -1,0 +1,209 @@
+"""Chaos benchmark of completion_node over real DDS (issue 16); the scenarios are pssnet_ros.chaos's.
+
+(a) kill -9 of the node in the middle of a service call (``--repeats`` times): how long the client waits
+    (its timeout), whether DDS tells it the server is gone and when, how fast a restarted node serves, and
+    what became of the killed node's Fast DDS shared memory.
+(b) kill -9 of a client process in the middle of its call (``--repeats`` times): the node survives and
+    serves the next client (a new process).
+(c) stale shared memory: kill -9 of a node with nobody else on its domain leaves its segments; the next
+    node start removes them (its log); the cost of that check at start.
+(d) stalled subscribers of /pssnet/completions (``--stall-seconds`` each, ``--rounds`` times): a subscriber
+    that never spins, one that sleeps 2 s in its callback, one frozen with SIGSTOP, and all three, each right
+    after a window with none (the machine is shared: neighbours compare best): the rate and latency a normal
+    subscriber sees, service latency, the node's RSS and CPU and the CPU everything else took.
+
+    .venv/bin/python benchmarks/chaos_bench.py [--repeats 3] [--stall-seconds 30] [--rounds 1] [--only abcd]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from pssnet_ros import chaos
+from pssnet_ros.client import RosClient, wait_until
+from pssnet_ros.processes import (
+    SHM_GRACE_S,
+    RosProcess,
+    clean_stale_shm,
+    cpu_kind,
+    free_domain_id,
+    ros_env,
+    ros_param_args,
+    shm_files,
+    stale_shm_files,
+)
+
+
+def start_node(domain: int, threads: int, model: str, **params: object) -> RosProcess:
+    """A completion node allowing heavy requests, ready to serve (RosProcess.stop() is the caller's)."""
+    values = dict(chaos.NODE_PARAMS, up_vector=chaos.scene_up_vector(), threads=threads, **params)
+    if model:
+        values["model_path"] = model
+    process = RosProcess.python_module("pssnet_ros.completion_node", ros_param_args(**values), ros_env(domain),
+                                       name="node")
+    try:
+        process.wait_for(r"ready: serving", timeout=180)
+    except BaseException:
+        process.stop()
+        raise
+    return process
+
+
+def mib(n: float) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def seconds(value: float | None, missing: str) -> str:
+    return missing if value is None else f"{value:.2f} s"
+
+
+def node_killed(args: argparse.Namespace, domain: int) -> list[dict]:
+    reports = []
+    node = start_node(domain, args.threads, args.model)
+    try:
+        with RosClient(domain, "chaos_bench_a") as ros:
+            for i in range(args.repeats):
+                watch = args.watch_server if i == 0 else 0.0  # DDS takes its participant lease to notice
+                report, node = chaos.kill_node_mid_call(
+                    ros, node, lambda: start_node(domain, args.threads, args.model), args.call_timeout,
+                    watch_server_s=watch)
+                fates = {fate: list(report.fates.values()).count(fate) for fate in set(report.fates.values())}
+                gone = seconds(report.server_gone_s, f"not within {watch:g} s" if watch else "not watched")
+                print(f"[chaos] (a) node killed {report.in_flight_s * 1000:.0f} ms into a {chaos.HEAVY_SAMPLES}-"
+                      f"sample call: answered {report.answered}; the client gave up "
+                      f"{seconds(report.gave_up_after_kill_s, 'never (hang)')} after the kill (timeout "
+                      f"{report.call_timeout_s:g} s: {report.error}); service_is_ready() false after {gone}; "
+                      f"restarted node ready in {report.restart_ready_s:.1f} s, served {report.served} in "
+                      f"{report.served_ms:.0f} ms (attempt {report.attempts}); the killed node's shared memory: "
+                      f"{len(report.shm_files)} files, {mib(report.shm_bytes)}, "
+                      f"{len(report.stale_before_restart)} unused at the restart; fates {fates}")
+                reports.append(asdict(report))
+    finally:
+        node.stop()
+    return reports
+
+
+def client_killed(args: argparse.Namespace, domain: int) -> list[dict]:
+    reports = []
+    dead: dict[str, int] = {}
+    node = start_node(domain, args.threads, args.model)
+    try:
+        with RosClient(domain, "chaos_bench_b") as ros:
+            for _ in range(args.repeats):
+                report = chaos.kill_client_mid_call(ros, node, ros_env(domain))
+                dead.update(report.killed_files)
+                print(f"[chaos] (b) client killed {report.in_flight_s * 1000:.0f} ms into its call (answered "
+                      f"before: {report.answered_before_kill}); node alive {report.node_alive}; next client "
+                      f"served {report.next_served} in {report.next_ms:.0f} ms (incl. the rest of the dead "
+                      f"client's request; node: {report.next_message}); service failures {report.failures}")
+                reports.append(asdict(report))
+    finally:
+        node.stop()
+    print(f"[chaos] (b) the killed clients' files removed afterwards: {len(chaos.remove_dead_files(dead))}")
+    return reports
+
+
+def stale_shared_memory(args: argparse.Namespace, domain: int) -> dict:
+    """A node serves a client; the client leaves cleanly; the node, now alone, is killed; the next start."""
+    t0 = time.perf_counter()
+    idle = clean_stale_shm()
+    check_ms = (time.perf_counter() - t0) * 1000
+    node = start_node(domain, args.threads, args.model)
+    with RosClient(domain, "chaos_bench_c") as ros:
+        for _ in range(5):
+            chaos.call_until_answered(ros, chaos.scene_request(chaos.LIGHT_SAMPLES), 1, 60.0)
+    node.record_shm_files()
+    node.proc.send_signal(signal.SIGKILL)
+    node.stop()
+    owned = dict(node.shm_files)
+    left = wait_until(lambda: stale_shm_files(owned), 30.0, "the lone node's files unused")
+    left_bytes = chaos.allocated_bytes(owned)
+    wait_until(lambda: all(time.time() - os.stat(p).st_mtime >= SHM_GRACE_S for p in left if os.path.exists(p)),
+               SHM_GRACE_S + 30, "the files older than the grace period")
+    restarted = start_node(domain, args.threads, args.model)
+    restarted.stop()
+    logged = [line for line in restarted.lines() if "stale Fast DDS" in line]
+    current = shm_files()
+    remaining = sorted(p for p, inode in owned.items() if current.get(p) == inode)
+    print(f"[chaos] (c) clean_stale_shm() with nothing to remove: {check_ms:.1f} ms ({idle.kept} Fast DDS "
+          f"segments/ports of live processes kept); a lone node killed -9 left {len(left)} of its "
+          f"{len(owned)} segments/ports unused ({mib(left_bytes)} allocated); the next start: "
+          f"{logged[0].split('] ', 2)[-1] if logged else 'removed nothing'}; the killed node's files left "
+          f"after it: {remaining or 'none'}")
+    return {"check_ms": check_ms, "owned": len(owned), "left": len(left), "left_bytes": left_bytes,
+            "restart_log": logged, "remaining": remaining}
+
+
+def stalled_subscribers(args: argparse.Namespace, domain: int) -> list[dict]:
+    node = start_node(domain, args.threads, args.model, continuous=True, max_rate_hz=float(args.max_rate))
+    env = ros_env(domain)
+    windows = []
+    try:
+        with RosClient(domain, "chaos_bench_d") as ros, \
+                RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", str(args.camera_rate)], env,
+                                         name="camera") as camera:
+            listener = chaos.CompletionsListener(ros)
+            camera.wait_for(r"publishing", 120)
+            wait_until(lambda: len(listener) > 0, 120, "a first completion")
+            request = chaos.scene_request(chaos.LIGHT_SAMPLES, grasps=False)
+            # Each stalled case follows a window alone: the machine is shared, so compare neighbours.
+            cases = [(), *((m,) for m in chaos.SUBSCRIBER_MODES), chaos.SUBSCRIBER_MODES]
+            for modes in [case for _ in range(args.rounds) for stalled in cases[1:] for case in ((), stalled)]:
+                window, lines = chaos.run_with_subscribers(ros, listener, node, env, modes, args.stall_seconds,
+                                                           request, timeout=120)
+                print(f"[chaos] (d) {window.summary()}; the subscribers: {lines or '-'}")
+                windows.append(asdict(window) | {"rate_hz": window.rate_hz, "subscribers": lines})
+    finally:
+        node.stop()
+    return windows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", default="", help="checkpoint (default: the shipped model)")
+    parser.add_argument("--threads", type=int, default=2, help="node torch threads")
+    parser.add_argument("--repeats", type=int, default=3, help="kills in (a) and (b)")
+    parser.add_argument("--call-timeout", type=float, default=5.0, help="(a): the client's timeout, s")
+    parser.add_argument("--watch-server", type=float, default=40.0,
+                        help="(a), first kill: watch service_is_ready() this long, s (0: not at all)")
+    parser.add_argument("--stall-seconds", type=float, default=30.0, help="(d): length of each window, s")
+    parser.add_argument("--rounds", type=int, default=1, help="(d): repetitions of the windows")
+    parser.add_argument("--camera-rate", type=float, default=30.0, help="(d): synthetic camera rate, Hz")
+    parser.add_argument("--max-rate", type=float, default=30.0, help="(d): node max_rate_hz")
+    parser.add_argument("--only", default="abcd", help="scenarios to run, e.g. 'ad'")
+    parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
+    args = parser.parse_args()
+    domain = free_domain_id(10 + os.getpid() % 90)
+    print(f"[chaos] CPU: {cpu_kind()}; {os.cpu_count()} cores; {platform.platform()}; ROS_DOMAIN_ID {domain}; "
+          f"node threads {args.threads}")
+    results: dict[str, object] = {"cpu": cpu_kind()}
+    scenarios = {"a": ("node_killed", node_killed), "b": ("client_killed", client_killed),
+                 "c": ("stale_shm", stale_shared_memory), "d": ("stalled_subscribers", stalled_subscribers)}
+    for key in args.only:
+        name, run = scenarios[key]
+        t0 = time.monotonic()
+        results[name] = run(args, domain)
+        print(f"[chaos] ({key}) took {time.monotonic() - t0:.0f} s")
+    if "a" in args.only:
+        kills = results["node_killed"]
+        gave_up = [r["gave_up_after_kill_s"] for r in kills if r["gave_up_after_kill_s"] is not None]
+        print(f"[chaos] (a) summary: {sum(r['answered'] for r in kills)} answers from killed nodes, "
+              f"{len(kills) - len(gave_up)} clients hung, the others gave up after the kill in "
+              f"{np.min(gave_up):.2f}-{np.max(gave_up):.2f} s; {sum(r['served'] for r in kills)}/{len(kills)} "
+              f"restarted nodes served")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

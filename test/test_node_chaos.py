@@ -1,0 +1,225 @@
+"""Chaos over real DDS (issue 16): kill -9 of the node and of a client in the middle of a call, stale Fast DDS
+shared memory, stalled subscribers of /pssnet/completions.
+
+The scenarios live in :mod:`pssnet_ros.chaos`; ``benchmarks/chaos_bench.py`` runs them longer and prints the
+numbers (RELIABILITY.md). These are the short versions, each asserting what must hold. Nothing waits a guessed
+time: every wait is on a condition (a log line, a counter of the node, a file's state) with a deadline.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import fcntl
+import os
+import secrets
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from test_node_helpers import domain_for, node_args, node_checkpoint
+
+from pssnet_ros import chaos
+from pssnet_ros.client import RosClient, wait_until
+from pssnet_ros.processes import (
+    LOCK_SUFFIX,
+    SHM_DIR,
+    SHM_GRACE_S,
+    RosProcess,
+    clean_stale_shm,
+    ros_env,
+    shm_files,
+    stale_shm_files,
+)
+
+pytestmark = pytest.mark.ros
+DOMAIN = domain_for(11)
+TIMEOUT = 60.0  # for anything a process must do: generous, the machine may be loaded
+CALL_TIMEOUT = 3.0  # the client's patience in the kill -9 scenario
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> Path:
+    return node_checkpoint(tmp_path_factory.mktemp("chaos"))[0]
+
+
+def start_node(checkpoint: Path, domain: int) -> RosProcess:
+    """A completion node that allows heavy requests (:data:`chaos.NODE_PARAMS`), ready to serve."""
+    params = dict(chaos.NODE_PARAMS, up_vector=chaos.scene_up_vector(), threads=1, num_samples=chaos.LIGHT_SAMPLES,
+                  max_rate_hz=5.0)
+    process = RosProcess.python_module("pssnet_ros.completion_node", node_args(checkpoint, **params),
+                                       ros_env(domain), name="completion_node")
+    try:
+        process.wait_for(r"ready: serving /pssnet/sample_completions", timeout=120)
+    except BaseException:
+        process.stop()
+        raise
+    return process
+
+
+@pytest.fixture(scope="module")
+def dead_files() -> Iterator[dict[str, int]]:
+    """Fast DDS files of the processes these tests kill: removed at the end, once no live process maps them."""
+    files: dict[str, int] = {}
+    yield files
+    chaos.remove_dead_files(files)
+
+
+@pytest.fixture(scope="module")
+def node(checkpoint, dead_files) -> Iterator[RosProcess]:
+    process = start_node(checkpoint, DOMAIN)
+    yield process
+    assert process.stop() == 0, process.output[-4000:]
+
+
+@pytest.fixture(scope="module")
+def ros(node) -> Iterator[RosClient]:
+    with RosClient(DOMAIN, "chaos_test_client") as client:
+        yield client
+
+
+# ----------------------------------------------------------------------------- (c) stale shared memory
+class PosixSemaphore:
+    """A named POSIX semaphore like Fast DDS' port mutex (created here with value 0: "held by someone")."""
+
+    def __init__(self, name: str) -> None:
+        self._libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        self._libc.sem_open.restype = ctypes.c_void_p
+        self.name = name
+        self._sem = self._libc.sem_open(f"/{name}".encode(), os.O_CREAT | os.O_EXCL, 0o644, 0)
+        assert self._sem, f"sem_open failed: {os.strerror(ctypes.get_errno())}"
+
+    def release(self) -> None:
+        self._libc.sem_post(ctypes.c_void_p(self._sem))
+
+    def close(self) -> None:
+        self._libc.sem_close(ctypes.c_void_p(self._sem))
+        self._libc.sem_unlink(f"/{self.name}".encode())
+
+
+def fake_segment(name: str, age_s: float = 0.0) -> list[Path]:
+    """A segment file and its lock file as Fast DDS creates them, ``age_s`` old."""
+    paths = [SHM_DIR / name, SHM_DIR / (name + LOCK_SUFFIX)]
+    for path in paths:
+        path.write_bytes(b"")
+    backdate(paths, age_s)
+    return paths
+
+
+def backdate(paths, age_s: float) -> None:
+    then = time.time() - age_s
+    for path in paths:
+        if os.path.exists(path):
+            os.utime(path, (then, then))
+
+
+def with_locks(files: dict[str, int]) -> list[str]:
+    return [p for path in files for p in (path, path + LOCK_SUFFIX)]
+
+
+def test_start_up_cleanup_removes_a_dead_participants_files_and_keeps_a_live_ones(dead_files):
+    """What clean_stale_shm (run by every node start) removes: files of a participant killed with -9, once
+    older than the grace period; never a live participant's, a young file, a segment whose lock someone holds,
+    or a port whose mutex someone holds."""
+    dead = RosProcess.python_module("pssnet_ros.chaos", ["subscriber", "--mode", "spinning"],
+                                    ros_env(domain_for(13)), name="doomed_participant")
+    live = RosProcess.python_module("pssnet_ros.chaos", ["subscriber", "--mode", "spinning"],
+                                    ros_env(domain_for(14)), name="live_participant")
+    token = secrets.token_hex(8)
+    young = fake_segment(f"fastrtps_{token}")
+    held = fake_segment(f"fastrtps_{secrets.token_hex(8)}", age_s=10 * SHM_GRACE_S)
+    port = fake_segment(f"fastrtps_port{90000 + int(token[:4], 16)}", age_s=10 * SHM_GRACE_S)
+    mutex = PosixSemaphore(f"{port[0].name}_mutex")
+    try:
+        with open(held[1], "rb") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # as the segment's owner holds it while it lives
+            dead.wait_for(r"^subscribed", TIMEOUT)
+            live.wait_for(r"^subscribed", TIMEOUT)
+            assert dead.shm_files and live.shm_files, "a participant owns its segments"
+            dead.proc.send_signal(signal.SIGKILL)
+            dead.stop()
+            dead_files.update(dead.shm_files)
+            stale = wait_until(lambda: stale_shm_files(dead.shm_files), TIMEOUT, "the killed participant's files")
+            # Both participants' files are ours to age: past the grace period, only locks and maps protect them.
+            backdate(with_locks(dead.shm_files) + with_locks(live.shm_files), 10 * SHM_GRACE_S)
+            first = clean_stale_shm()
+            current = shm_files()
+            for path in stale:
+                assert current.get(path) != dead.shm_files[path], f"{path} of the killed participant left"
+                assert path in first.removed
+            assert all(current.get(p) == inode for p, inode in live.shm_files.items()), "a live participant's file"
+            assert live.running()
+            assert all(p.exists() for p in young + held + port), "a young, a locked or a port opening"
+        mutex.release()
+        backdate(young, 10 * SHM_GRACE_S)
+        second = clean_stale_shm()
+        assert {str(p) for p in young + held + port} <= set(second.removed), "once old, unlocked, free"
+    finally:
+        mutex.close()
+        for path in young + held + port:
+            path.unlink(missing_ok=True)
+        live.stop()
+
+
+# -------------------------------------------------------------------------------- (b) client killed
+def test_client_killed_mid_call_does_not_hurt_the_node(node, ros, dead_files):
+    report = chaos.kill_client_mid_call(ros, node, ros_env(DOMAIN), TIMEOUT)
+    dead_files.update(report.killed_files)
+    assert not report.answered_before_kill, "the client had its answer: not killed mid-call"
+    assert report.node_alive, node.output[-4000:]
+    assert report.next_served, report.next_message
+    assert report.failures == 0
+
+
+# ---------------------------------------------------------------------------- (d) stalled subscribers
+def test_stalled_subscribers_stall_neither_completions_nor_the_service(node, ros):
+    """Subscribers that never spin, sleep 2 s in their callback, or are frozen (SIGSTOP, no acknowledgements
+    at all) while the node publishes ~0.5 MB completions at up to 5 Hz: every completion still reaches a
+    normal subscriber, the node keeps its pace, and the service keeps answering."""
+    env = ros_env(DOMAIN)
+    assert all(r.successful for r in ros.set_parameters(continuous=True))
+    listener = chaos.CompletionsListener(ros)
+    camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"], env, name="camera")
+    try:
+        camera.wait_for(r"publishing", TIMEOUT)
+        wait_until(lambda: len(listener) > 0, TIMEOUT, "a first completion at the normal subscriber")
+        request = chaos.scene_request(chaos.LIGHT_SAMPLES, grasps=False)
+        alone, _ = chaos.run_with_subscribers(ros, listener, node, env, (), 3.0, request, TIMEOUT)
+        stalled, lines = chaos.run_with_subscribers(ros, listener, node, env, chaos.SUBSCRIBER_MODES, 6.0, request,
+                                                    TIMEOUT)
+    finally:
+        camera.stop()
+        ros.set_parameters(continuous=False)
+    assert alone.sets_processed >= 3, alone.summary()
+    assert stalled.delivered >= stalled.sets_processed, stalled.summary()
+    # Half the pace alone is the bar: the subscriber processes share the two cores with the node.
+    assert stalled.rate_hz >= 0.5 * alone.rate_hz, f"{alone.summary()}\n{stalled.summary()}"
+    assert max(stalled.service_ms) < 10_000, stalled.summary()
+    assert lines["never_spins"] == "handled 0 messages", lines
+    assert lines["slow_callback"].startswith("handled"), lines
+
+
+# ---------------------------------------------------------------------------------- (a) node killed
+def test_node_killed_mid_call_client_gives_up_and_a_restarted_node_serves(checkpoint, dead_files):
+    domain = domain_for(12)
+    first = start_node(checkpoint, domain)
+    second = None
+    try:
+        with RosClient(domain, "chaos_test_client_a") as ros:
+            report, second = chaos.kill_node_mid_call(ros, first, lambda: start_node(checkpoint, domain),
+                                                      CALL_TIMEOUT, TIMEOUT, backdate=True)
+    finally:
+        first.stop()
+        if second is not None:
+            second.stop()
+    dead_files.update(report.shm_files)
+    assert not report.answered, "an answer from a killed node"
+    assert report.gave_up_after_kill_s is not None, f"the client still waited {CALL_TIMEOUT} s + 5 s after the call"
+    assert report.gave_up_after_kill_s <= CALL_TIMEOUT + 1.0
+    assert report.error.startswith("TimeoutError"), report.error
+    assert report.served, f"the restarted node did not serve ({report.attempts} attempts)"
+    assert report.stale_before_restart, "kill -9 leaves shared memory nobody uses"
+    for path in report.stale_before_restart:
+        assert report.fates[path] in ("removed by the new node", "removed by Fast DDS"), report.fates
