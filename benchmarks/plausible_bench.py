@@ -1,6 +1,7 @@
 """Plausible-set throughput: pairs per second of Alg. 2 (ICP + observation model), and a full-set estimate.
 
     .venv/bin/python benchmarks/plausible_bench.py --data data/test/mugs --references 16 --workers 2
+    .venv/bin/python benchmarks/plausible_bench.py --data /shared/data/test/mugs --references 864 --ray-address auto
     .venv/bin/python benchmarks/plausible_bench.py --synthetic-mugs 4 --views 72 --references 16
 
 With --data it loads a test set built by `pssnet dataset build`; with --synthetic-mugs it renders test mugs
@@ -26,6 +27,7 @@ from pssnet_core.evaluation.plausible import (  # noqa: E402
     ProceduralMeshes,
     compute_plausible_sets,
 )
+from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config  # noqa: E402
 
 
 def synthetic_mugs(num_mugs: int, views: int, grid: int):
@@ -55,9 +57,11 @@ def main() -> int:
     parser.add_argument("--views", type=int, default=72, help="views per synthetic mug")
     parser.add_argument("--grid", type=int, default=32)
     parser.add_argument("--references", type=int, default=16, help="reference observations computed")
-    parser.add_argument("--workers", type=int, default=1)
+    add_ray_options(parser, default_workers=1, what="reference observations")
     parser.add_argument("--deltas", default="0.04,0.01")
     parser.add_argument("--no-prefilter", action="store_true")
+    parser.add_argument("--record-fraction", type=float, default=0.01,
+                        help="as `pssnet plausible` (default 0.01); 0 = strict sets, where the diameter bound prunes")
     args = parser.parse_args()
 
     t0 = time.perf_counter()
@@ -73,13 +77,16 @@ def main() -> int:
     t_load = time.perf_counter() - t0
     m = len(views)
     refs = np.linspace(0, m - 1, min(args.references, m)).round().astype(int).tolist()
-    config = PlausibleConfig(deltas=tuple(float(d) for d in args.deltas.split(",")), prefilter=not args.no_prefilter)
-    sets = compute_plausible_sets(views, meshes, config, references=refs, workers=args.workers, progress=True)
+    config = PlausibleConfig(deltas=tuple(float(d) for d in args.deltas.split(",")), prefilter=not args.no_prefilter,
+                             record_fraction=args.record_fraction)
+    with TaskRunner(ray_config(args)) as runner:
+        print(f"running {runner.describe()}")  # starts Ray before the clock does
+        sets = compute_plausible_sets(views, meshes, config, references=refs, runner=runner, progress=True)
     s = sets.stats
     full_pairs = m * (m - 1)
     print(f"test set: {source}: {m} observations ({t_load:.1f} s to load/render)")
     print(f"computed {len(refs)} references x {m - 1} candidates = {s['pairs']} pairs in {s['seconds']:.1f} s "
-          f"with {args.workers} worker(s): {s['pairs_per_second']:.0f} pairs/s")
+          f"({s['executor']}): {s['pairs_per_second']:.0f} pairs/s")
     print(f"  pruned before ICP (diameter bound): {s['pruned_by_prefilter']}; rejected on sparse pixels: "
           f"{s['rejected_on_sparse_pixels']}; ICP cpu {s['icp_seconds_cpu']:.1f} s, judge cpu "
           f"{s['judge_seconds_cpu']:.1f} s")

@@ -49,7 +49,7 @@ def built(tmp_path_factory):
     root = tmp_path_factory.mktemp("data")
     out = []
     for spec in tiny_specs():
-        result = build_dataset(spec, dataset_path(root, spec), workers=1, progress=False)
+        result = build_dataset(spec, dataset_path(root, spec), progress=False)
         out.append((spec, DatasetReader(result.path)))
     return out
 
@@ -256,23 +256,24 @@ def assert_same_dataset(a, b) -> None:
                 assert np.array_equal(x, y), key
 
 
-def test_build_is_deterministic_across_workers_and_resumes(tmp_path):
+def test_build_is_deterministic_and_resumes(tmp_path):
+    # The same build on a 2-worker Ray: test_ray_tasks.py.
     spec = dataclasses.replace(dataset_specs("ycb", "train", grid_size=16, num_objects=2, views=3)[0],
                                objects_per_shard=1)
-    serial = build_dataset(spec, tmp_path / "a", workers=1, progress=False)
-    parallel = build_dataset(spec, tmp_path / "b", workers=2, progress=False)
-    assert serial.samples == parallel.samples == 6 and serial.shards_built == 2
-    assert_same_dataset(serial.path, parallel.path)
+    serial = build_dataset(spec, tmp_path / "a", progress=False)
+    again = build_dataset(spec, tmp_path / "b", progress=False)
+    assert serial.samples == again.samples == 6 and serial.shards_built == 2
+    assert_same_dataset(serial.path, again.path)
     # Resume: delete one shard, rebuild: only it is made again, and the result is identical.
     (tmp_path / "b" / "shards" / "00001.npz").unlink()
-    resumed = build_dataset(spec, tmp_path / "b", workers=1, progress=False)
+    resumed = build_dataset(spec, tmp_path / "b", progress=False)
     assert resumed.shards_built == 1 and resumed.shards_skipped == 1
     assert_same_dataset(serial.path, resumed.path)
     # Another seed makes other samples; resuming into a directory of another spec is refused.
-    other = build_dataset(dataclasses.replace(spec, seed=1), tmp_path / "c", workers=1, progress=False)
+    other = build_dataset(dataclasses.replace(spec, seed=1), tmp_path / "c", progress=False)
     assert shard_contents(other.path)[0] != shard_contents(serial.path)[0]
     with pytest.raises(DatasetSpecError, match="different build"):
-        build_dataset(dataclasses.replace(spec, seed=1), tmp_path / "a", workers=1, progress=False)
+        build_dataset(dataclasses.replace(spec, seed=1), tmp_path / "a", progress=False)
 
 
 def test_make_sample_is_independent_of_order():
@@ -379,13 +380,13 @@ def test_large_scale_is_many_objects_few_random_yaw_views_and_half_noisy():
 
 def test_a_build_spec_written_before_a_field_existed_still_resumes(tmp_path):
     spec = dataset_specs("mugs", "train", grid_size=16, num_objects=1, views=2)[0]
-    first = build_dataset(spec, tmp_path / "a", workers=1, progress=False)
+    first = build_dataset(spec, tmp_path / "a", progress=False)
     spec_file = first.path / "build_spec.json"
     old = json.loads(spec_file.read_text())
     for field in ("noise_fraction", "random_yaw"):
         del old["spec"][field]
     spec_file.write_text(json.dumps(old))
-    again = build_dataset(spec, first.path, workers=1, progress=False)
+    again = build_dataset(spec, first.path, progress=False)
     assert again.shards_built == 0 and again.samples == 2
     with pytest.raises(DatasetSpecError, match="different build"):
-        build_dataset(dataclasses.replace(spec, random_yaw=True), first.path, workers=1, progress=False)
+        build_dataset(dataclasses.replace(spec, random_yaw=True), first.path, progress=False)

@@ -1,11 +1,11 @@
-"""Building datasets: parallel over processes, resumable, deterministic.
+"""Building datasets: shards as Ray tasks (:mod:`pssnet_core.ray_tasks`), resumable, deterministic.
 
 The unit of work is a shard (``spec.objects_per_shard`` whole objects, so every object's mesh and
 ray-casting scene is made once). A shard already on disk is skipped, so an interrupted build resumes
-where it stopped; shards are written atomically by :func:`pssnet_core.data.store.write_shard`. Workers are
-separate processes started with "spawn" (open3d and forked threads do not mix) and each uses one open3d
-thread, so ``--workers N`` uses about N cores. Every sample depends only on ``(spec, index)``, so the result
-does not depend on the number of workers or on the order in which shards finish.
+where it stopped; shards are written atomically by :func:`pssnet_core.data.store.write_shard`, by the task that
+made them (on a cluster the output directory must be shared storage, at the same path on every node). Each task
+uses one open3d thread, so ``--workers N`` uses about N cores. Every sample depends only on ``(spec, index)``,
+so the result does not depend on the number of workers, on the nodes or on the order in which shards finish.
 
 Layout: ``OUT/<split>/<name>/`` per dataset (``name``: mugs, ycb, ycb_narrow, ycb_wide), each a dataset
 directory of :mod:`pssnet_core.data.store` plus ``build_spec.json`` (the spec the shards were made with;
@@ -15,18 +15,16 @@ resuming with a different spec is refused).
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-
 from pssnet_core.data.datasets import DatasetSpec, DatasetSpecError, dataset_specs, make_sample
 from pssnet_core.data.scenes import ObjectScene
 from pssnet_core.data.store import finalize, shard_exists, write_shard
+from pssnet_core.ray_tasks import TaskRunner
 from pssnet_core.shapes import make_shape
 
 SPEC_FILE = "build_spec.json"
@@ -64,9 +62,8 @@ def build_shard(spec: DatasetSpec, root: str | Path, shard: int, threads: int = 
     return len(samples)
 
 
-def _shard_job(job: tuple[dict[str, Any], str, int]) -> int:
-    spec_data, root, shard = job
-    return build_shard(DatasetSpec.from_dict(spec_data), root, shard, threads=1)
+def _shard_task(shard: int, spec: DatasetSpec, root: str) -> int:
+    return build_shard(spec, root, shard, threads=1)
 
 
 def _check_spec_file(root: Path, spec: DatasetSpec) -> None:
@@ -107,55 +104,44 @@ def dataset_meta(spec: DatasetSpec) -> dict[str, Any]:
     return meta
 
 
-def build_dataset(spec: DatasetSpec, root: str | Path, workers: int = 1, progress: bool = True) -> BuildResult:
+def build_dataset(spec: DatasetSpec, root: str | Path, runner: TaskRunner | None = None,
+                  progress: bool = True) -> BuildResult:
     """Builds (or resumes) one dataset in directory ``root`` and writes its index.
 
     Args:
         spec: what to build.
         root: the dataset directory (created).
-        workers: processes; 1 builds in this process.
+        runner: where the shards are made (default: in this process).
         progress: show a tqdm progress bar (per finished shard).
 
     Raises:
-        DatasetSpecError: ``root`` holds shards of a different spec, or ``workers`` < 1.
+        DatasetSpecError: ``root`` holds shards of a different spec.
     """
-    if workers < 1:
-        raise DatasetSpecError(f"workers must be >= 1, got {workers}")
     root = Path(root)
     _check_spec_file(root, spec)
     start = time.perf_counter()
     todo = [s for s in range(spec.num_shards) if not shard_exists(root, s)]
-    skipped = spec.num_shards - len(todo)
-    done_samples = sum(len(spec.shard_range(s)) for s in range(spec.num_shards) if s not in set(todo))
-    bar = tqdm(total=spec.num_samples, initial=done_samples, unit="sample", desc=f"{spec.split}/{spec.name}",
-               disable=not progress, dynamic_ncols=True)
-    try:
-        if workers == 1 or len(todo) <= 1:
-            for shard in todo:
-                bar.update(build_shard(spec, root, shard, threads=1))
-        else:
-            jobs = [(spec.to_dict(), str(root), shard) for shard in todo]
-            with mp.get_context("spawn").Pool(min(workers, len(todo))) as pool:
-                for count in pool.imap_unordered(_shard_job, jobs):
-                    bar.update(count)
-    finally:
-        bar.close()
+    runner = runner or TaskRunner()  # the default runs in this process: nothing to close
+    shared = {"spec": spec, "root": str(root.resolve())}  # tasks on other nodes write there: an absolute path
+    for _ in runner.map(_shard_task, todo, shared, desc=f"{spec.split}/{spec.name}", unit_name="shard",
+                        done=spec.num_shards - len(todo), progress=progress):
+        pass
     count = finalize(root, dataset_meta(spec))
     if count != spec.num_samples:
         raise DatasetSpecError(f"{root} holds {count} samples, expected {spec.num_samples}; delete it and rebuild")
-    return BuildResult(spec=spec, path=root, samples=count, shards_built=len(todo), shards_skipped=skipped,
-                       seconds=time.perf_counter() - start)
+    return BuildResult(spec=spec, path=root, samples=count, shards_built=len(todo),
+                       shards_skipped=spec.num_shards - len(todo), seconds=time.perf_counter() - start)
 
 
-def build(family: str, split: str, out: str | Path, grid_size: int = 32, workers: int = 1, seed: int = 0,
-          num_objects: int | None = None, views: int | None = None, noise: Any = None,
+def build(family: str, split: str, out: str | Path, grid_size: int = 32, runner: TaskRunner | None = None,
+          seed: int = 0, num_objects: int | None = None, views: int | None = None, noise: Any = None,
           front_margin: float | None = None, bottom_margin: float | None = None,
           progress: bool = True, scale: str = "default") -> list[BuildResult]:
     """Builds every dataset of ``family`` ("mugs", "ycb", "all") and ``split`` under ``out``.
 
     See :func:`pssnet_core.data.datasets.dataset_specs` for the datasets and their defaults, and
-    :func:`dataset_path` for where each goes.
+    :func:`dataset_path` for where each goes. ``runner`` makes the shards (default: in this process).
     """
     specs = dataset_specs(family, split, grid_size=grid_size, seed=seed, num_objects=num_objects, views=views,
                           noise=noise, front_margin=front_margin, bottom_margin=bottom_margin, scale=scale)
-    return [build_dataset(spec, dataset_path(out, spec), workers=workers, progress=progress) for spec in specs]
+    return [build_dataset(spec, dataset_path(out, spec), runner=runner, progress=progress) for spec in specs]

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from pssnet_core.geometry import ObservationError
+from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 from pssnet_core.shapes import ShapeError
 
 
@@ -15,10 +16,11 @@ def _build(args: argparse.Namespace) -> int:
     from pssnet_core.data.build import build
     from pssnet_core.data.scenes import SensorNoise
 
-    results = build(args.family, args.split, args.out, grid_size=args.grid, workers=args.workers, seed=args.seed,
-                    num_objects=args.num_objects, views=args.views, noise=SensorNoise() if args.noise else None,
-                    front_margin=args.front_margin, bottom_margin=args.bottom_margin, progress=not args.quiet,
-                    scale=args.scale)
+    with TaskRunner(ray_config(args)) as runner:
+        results = build(args.family, args.split, args.out, grid_size=args.grid, runner=runner, seed=args.seed,
+                        num_objects=args.num_objects, views=args.views, noise=SensorNoise() if args.noise else None,
+                        front_margin=args.front_margin, bottom_margin=args.bottom_margin, progress=not args.quiet,
+                        scale=args.scale)
     for r in results:
         state = f"built {r.shards_built} shards" + (f", {r.shards_skipped} already there" if r.shards_skipped else "")
         print(f"{r.path}: {r.samples} samples ({state}) in {r.seconds:.1f} s")
@@ -67,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("dataset", help="build, preview and summarise synthetic datasets")
     sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
 
-    b = sub.add_parser("build", help="render a dataset (parallel, resumable) into OUT/<split>/<name>",
+    b = sub.add_parser("build", help="render a dataset (Ray tasks, resumable) into OUT/<split>/<name>",
                        description="Renders the mugs / ycb datasets. Train: OUT/train/mugs, OUT/train/ycb; "
                                    "test: OUT/test/mugs, OUT/test/ycb_narrow, OUT/test/ycb_wide. Shards already "
                                    "on disk are kept, so running the same command again resumes.")
@@ -75,7 +77,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--split", choices=("train", "val", "test"), default="train")
     b.add_argument("--out", required=True, help="build root directory")
     b.add_argument("--grid", type=int, default=32, help="grid voxels per edge (grid spans 0.20 m); default 32")
-    b.add_argument("--workers", type=int, default=1, help="processes (each uses one core); default 1")
+    add_ray_options(b, default_workers=1, what="shards")
     b.add_argument("--seed", type=int, default=0, help="master seed; default 0")
     b.add_argument("--num-objects", type=int, default=None, help="objects per dataset (default: 120/300 train "
                    "mugs/ycb, 12 per test set)")

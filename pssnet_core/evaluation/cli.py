@@ -24,6 +24,7 @@ from pssnet_core.evaluation.plausible import (
     dataset_fingerprint,
 )
 from pssnet_core.evaluation.testsets import TEST_SETS, find_test_set, load_test_set
+from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 
 PAPER_DELTA = 0.04
 SCALED_DELTA = 0.01
@@ -49,7 +50,7 @@ def _add_plausible_options(p: argparse.ArgumentParser) -> None:
                    help="with --max-observations: also score every --dense-step-th view of the first K mugs with a "
                         "handle (a full turn for the coverage-vs-rotation plot)")
     p.add_argument("--dense-step", type=int, default=2, help="view stride of --dense-mugs (2 = every 10 degrees)")
-    p.add_argument("--workers", type=int, default=2, help="processes for the plausible sets")
+    add_ray_options(p, default_workers=2, what="plausible sets and scores of the observations")
     p.add_argument("--cache-dir", default=None, help="plausible-set cache (default DATA_SET/plausible_cache)")
     p.add_argument("--recompute", action="store_true", help="ignore cached plausible sets")
     p.add_argument("--outlier-fraction", type=float, default=0.0,
@@ -229,9 +230,9 @@ def _dense_mug_views(views: list[Any], count: int, step: int) -> list[int]:
     return out
 
 
-def _plausible_for(args: argparse.Namespace,
-                   deltas: tuple[float, ...]) -> dict[str, tuple[list, PlausibleSets, list[int]]]:
-    """Loads each requested test set and its plausible sets (cached or computed)."""
+def _plausible_for(args: argparse.Namespace, deltas: tuple[float, ...],
+                   runner: TaskRunner) -> dict[str, tuple[list, PlausibleSets, list[int]]]:
+    """Loads each requested test set and its plausible sets (cached, resumed or computed by ``runner``)."""
     progress = not args.no_progress
     config = PlausibleConfig(deltas=deltas, record_fraction=max(args.record_fraction, args.outlier_fraction),
                              observation=ObservationModelConfig(outlier_fraction=args.outlier_fraction,
@@ -252,13 +253,16 @@ def _plausible_for(args: argparse.Namespace,
         cache = Path(args.cache_dir) if args.cache_dir else root / "plausible_cache"
         t0 = time.perf_counter()
         sets, path, hit = cached_plausible_sets(views, ProceduralMeshes(), dataset_fingerprint(root), cache, config,
-                                                refs, workers=args.workers, progress=progress,
+                                                refs, runner=runner, progress=progress,
                                                 desc=f"plausible {name}", recompute=args.recompute)
         s = sets.stats
         state = "cached" if hit else f"computed in {time.perf_counter() - t0:.1f} s"
+        if not hit and s.get("resumed_references"):
+            state += f", {s['resumed_references']} references resumed from an interrupted run"
         sizes = {d: float(np.mean(list(sets.sizes(d).values()))) for d in deltas}
+        where = s.get("executor") or f"{s['workers']} workers"  # caches written before Ray lack "executor"
         print(f"{name}: {len(views)} observations, {len(sets.references)} references, {s['pairs']} pairs "
-              f"({state}; {s['pairs_per_second']:.0f} pairs/s with {s['workers']} workers when computed); "
+              f"({state}; {s['pairs_per_second']:.0f} pairs/s, {where}, when computed); "
               f"mean set size {', '.join(f'{d * 100:g} cm: {v:.1f}' for d, v in sizes.items())}; "
               f"own ground truth plausible: {s['own_ground_truth_plausible_rate']} -> {path}")
         out[name] = (views, sets, [int(i) for i in sets.references])
@@ -268,7 +272,8 @@ def _plausible_for(args: argparse.Namespace,
 
 
 def _plausible_command(args: argparse.Namespace) -> int:
-    _plausible_for(args, tuple(args.deltas))
+    with TaskRunner(ray_config(args)) as runner:
+        _plausible_for(args, tuple(args.deltas), runner)
     return 0
 
 
@@ -317,23 +322,26 @@ def run_evaluation(args: argparse.Namespace, completers: dict[str, Any]) -> dict
     deltas = (args.delta,) + ((args.scaled_delta,) if args.scaled_delta and args.scaled_delta > 0 else ())
     if len(set(deltas)) != len(deltas):
         deltas = (args.delta,)
-    loaded = _plausible_for(args, deltas)
     out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
     output = EvaluationOutput()
-    t0 = time.perf_counter()
-    for name, (views, sets, refs) in loaded.items():
-        # One example per figure set: the first occluded-handle mug, the first narrow-slit observation.
-        if name == "mugs":
-            hidden = [i for i in refs if views[i].meta.get("handle_visible") is False]
-            chosen = hidden[len(hidden) // 2] if hidden else None
-        elif name == "ycb_narrow":
-            chosen = refs[len(refs) // 2] if refs else None
-        else:
-            chosen = None
-        keep = (lambda v, c=chosen: v.index == c) if chosen is not None else None
-        evaluate_set(name, views, ProceduralMeshes(), sets, completers, deltas, args.samples, args.seed, refs,
-                     keep=keep, progress=not args.no_progress, output=output)
+    # One Ray for the whole command; completers on a GPU take a whole GPU per task.
+    gpus_per_task = 1.0 if str(getattr(args, "device", "cpu")).startswith("cuda") else 0.0
+    with TaskRunner(ray_config(args)) as runner:
+        loaded = _plausible_for(args, deltas, runner)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        for name, (views, sets, refs) in loaded.items():
+            # One example per figure set: the first occluded-handle mug, the first narrow-slit observation.
+            if name == "mugs":
+                hidden = [i for i in refs if views[i].meta.get("handle_visible") is False]
+                keep = hidden[len(hidden) // 2:][:1]
+            elif name == "ycb_narrow":
+                keep = refs[len(refs) // 2:][:1]
+            else:
+                keep = []
+            evaluate_set(name, views, ProceduralMeshes(), sets, completers, deltas, args.samples, args.seed, refs,
+                         keep=keep, progress=not args.no_progress, output=output, runner=runner,
+                         gpus_per_task=gpus_per_task)
     methods = list(completers)
     summary = summarise(output.rows, methods, deltas)
     notes = {args.delta: "the paper's value"}

@@ -14,7 +14,9 @@ For every reference observation ``i`` and every other observation ``j`` of the s
 
 Speed: the cost is quadratic. The ICP (the expensive part) and the render are done once per pair for all deltas
 (only the pixel comparison depends on delta). A prefilter skips ICP and rendering where no rigid placement of
-``j``'s mesh can pass (see :func:`diameter_bound_rejects`); work is spread over processes and the result cached.
+``j``'s mesh can pass (see :func:`diameter_bound_rejects`). Each reference observation is a Ray task
+(:mod:`pssnet_core.ray_tasks`); the views, meshes and ICP clouds go into the object store once. Finished
+references are written to a parts directory as they come in, so a killed run resumes, and the whole result is cached.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import multiprocessing
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -40,6 +42,11 @@ from pssnet_core.evaluation.observation_model import (
     ObservationModelError,
 )
 from pssnet_core.geometry import GridPose
+from pssnet_core.ray_tasks import TaskRunner
+
+# Finished references are buffered and written to the parts directory at most this often (a killed run loses at
+# most this much work; one file per reference would be 100,000 files for a large test set).
+PART_FLUSH_SECONDS = 30.0
 
 
 class PlausibleSetError(ValueError):
@@ -292,15 +299,31 @@ class PlausibleSets:
             raise PlausibleSetError(f"plausible-set cache {path} is unreadable: {error}") from error
 
 
-class _PairJudge:
-    """Per-process state: the views, their ICP clouds and meshes (built lazily), for judging pairs."""
+def icp_cloud(view: EvalView, config: PlausibleConfig) -> np.ndarray:
+    """(M, 3) camera-frame points that ICP aligns for ``view`` (see ``PlausibleConfig.icp_points``)."""
+    import open3d as o3d
 
-    def __init__(self, views: Sequence[EvalView], meshes: MeshSource, config: PlausibleConfig) -> None:
+    if config.icp_points == "observed" and view.depth_view is not None:
+        points = view.depth_view.object_points()
+    else:
+        points = view.observed_cloud()
+    if config.icp_points != "observed":
+        return np.asarray(points, dtype=np.float64)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    return np.asarray(cloud.voxel_down_sample(config.icp_voxel or view.grid_pose.voxel_size).points)
+
+
+class _PairJudge:
+    """The views, their ICP clouds and meshes (open3d objects built lazily), for judging pairs."""
+
+    def __init__(self, views: Sequence[EvalView], meshes: MeshSource, clouds: Sequence[np.ndarray],
+                 config: PlausibleConfig) -> None:
         import open3d as o3d
 
         self.o3d = o3d
-        self.views = list(views)
+        self.views = views
         self.meshes = meshes
+        self.points = clouds
         self.config = config
         self._raycasters: dict[str, MeshRaycaster] = {}
         self._clouds: dict[int, Any] = {}
@@ -313,16 +336,9 @@ class _PairJudge:
 
     def cloud(self, index: int) -> Any:
         if index not in self._clouds:
-            view = self.views[index]
-            if self.config.icp_points == "observed" and view.depth_view is not None:
-                points = view.depth_view.object_points()
-            else:
-                points = view.observed_cloud()
-            cloud = self.o3d.geometry.PointCloud(self.o3d.utility.Vector3dVector(points))
-            if self.config.icp_points == "observed":
-                cell = self.config.icp_voxel or view.grid_pose.voxel_size
-                cloud = cloud.voxel_down_sample(cell)
-            self._clouds[index] = cloud
+            # A copy: open3d wants a writeable array, and arrays from Ray's object store are read-only.
+            points = np.array(self.points[index], dtype=np.float64)
+            self._clouds[index] = self.o3d.geometry.PointCloud(self.o3d.utility.Vector3dVector(points))
         return self._clouds[index]
 
     def icp(self, i: int, j: int) -> np.ndarray:
@@ -388,39 +404,74 @@ class _PairJudge:
                 "t_icp": t_icp, "t_judge": t_judge}
 
 
-# Per-process judge of pool workers (the standard multiprocessing initializer pattern: set once in each
-# worker process by _init_worker, never in the parent).
-_WORKER_JUDGE: list[_PairJudge] = []
+def _judge_reference(i: int, views: Sequence[EvalView], meshes: MeshSource, clouds: Sequence[np.ndarray],
+                     config: PlausibleConfig) -> dict[str, Any]:
+    """The unit of work (a Ray task): every candidate judged against reference ``i``."""
+    return _PairJudge(views, meshes, clouds, config).run(i)
 
 
-def _init_worker(views: Sequence[EvalView], meshes: MeshSource, config: PlausibleConfig) -> None:
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    _WORKER_JUDGE.append(_PairJudge(views, meshes, config))
+def _write_part(parts_dir: Path, outputs: Sequence[dict[str, Any]], deltas: int) -> None:
+    """Finished references as one file of ``parts_dir`` (atomic: a killed run leaves whole files only)."""
+    rows = [(o["i"], j, transform, violations) for o in outputs for j, transform, violations in o["rows"]]
+    arrays = {
+        "refs": np.array([o["i"] for o in outputs], dtype=np.int64),
+        "counts": np.array([[o["pairs"], o["pruned"], o["early"], o["object_pixels"]] for o in outputs],
+                           dtype=np.int64),
+        "own_plausible": np.array([o["own_plausible"] for o in outputs], dtype=bool).reshape(-1, deltas),
+        "seconds": np.array([[o["t_icp"], o["t_judge"]] for o in outputs], dtype=np.float64),
+        "row_ref": np.array([r[0] for r in rows], dtype=np.int64),
+        "other": np.array([r[1] for r in rows], dtype=np.int64),
+        "transforms": np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4, 4),
+        "violations": np.array([r[3] for r in rows], dtype=np.int64).reshape(-1, deltas),
+    }
+    parts_dir.mkdir(parents=True, exist_ok=True)
+    path = parts_dir / f"part_{outputs[0]['i']:09d}.npz"
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as handle:
+        np.savez(handle, **arrays)
+    os.replace(tmp, path)
 
 
-def _run_worker(i: int) -> dict[str, Any]:
-    return _WORKER_JUDGE[0].run(i)
+def _read_parts(parts_dir: Path) -> dict[int, dict[str, Any]]:
+    """The references a killed run finished (as :func:`_judge_reference` returned them), by index."""
+    outputs: dict[int, dict[str, Any]] = {}
+    for path in sorted(parts_dir.glob("part_*.npz")):
+        try:
+            with np.load(path) as data:
+                part = {k: data[k] for k in data.files}
+        except (OSError, ValueError, KeyError) as error:
+            raise PlausibleSetError(f"plausible-set part {path} is unreadable ({error}); delete it") from error
+        for k, i in enumerate(part["refs"].tolist()):
+            rows = np.nonzero(part["row_ref"] == i)[0]
+            pairs, pruned, early, pixels = part["counts"][k].tolist()
+            outputs[i] = {"i": i, "pairs": pairs, "pruned": pruned, "early": early, "object_pixels": pixels,
+                          "own_plausible": part["own_plausible"][k].tolist(),
+                          "t_icp": float(part["seconds"][k, 0]), "t_judge": float(part["seconds"][k, 1]),
+                          "rows": [(int(part["other"][r]), part["transforms"][r], part["violations"][r].tolist())
+                                   for r in rows]}
+    return outputs
 
 
 def compute_plausible_sets(views: Sequence[EvalView], meshes: MeshSource, config: PlausibleConfig | None = None,
-                           references: Sequence[int] | None = None, workers: int = 1,
-                           progress: bool = True, desc: str = "plausible sets") -> PlausibleSets:
-    """Alg. 2 over a test set.
+                           references: Sequence[int] | None = None, runner: TaskRunner | None = None,
+                           progress: bool = True, desc: str = "plausible sets",
+                           parts_dir: str | Path | None = None) -> PlausibleSets:
+    """Alg. 2 over a test set, one Ray task per reference observation.
 
     Args:
         views: the whole test set (``views[k].index == k``).
-        meshes: identity -> (vertices, faces) in the mesh frame (picklable when ``workers > 1``).
+        meshes: identity -> (vertices, faces) in the mesh frame (called here, once per identity).
         config: parameters.
         references: observations to build sets for (default all); candidates are always the whole set.
-        workers: processes (1 = in this process).
+        runner: where the references are computed (default: in this process).
         progress: show a tqdm bar.
         desc: bar label.
+        parts_dir: where finished references are written as they come in and read back on the next call, so a
+            killed run resumes; it must belong to this computation alone (same views, config and references).
 
     Returns:
         The :class:`PlausibleSets`, with ``stats`` (pairs, pruned, seconds, pairs_per_second, own-GT pass rate).
     """
-    from tqdm import tqdm
-
     config = config or PlausibleConfig()
     for k, v in enumerate(views):
         if v.index != k:
@@ -428,56 +479,64 @@ def compute_plausible_sets(views: Sequence[EvalView], meshes: MeshSource, config
     refs = list(range(len(views))) if references is None else [int(r) for r in references]
     if any(not 0 <= r < len(views) for r in refs):
         raise PlausibleSetError(f"reference indices must be in [0, {len(views)})")
+    parts = Path(parts_dir) if parts_dir is not None else None
+    done = {i: o for i, o in _read_parts(parts).items() if i in set(refs)} if parts is not None else {}
+    todo = [i for i in refs if i not in done]
+    runner = runner or TaskRunner()  # the default runs in this process: nothing to close
     t_start = time.perf_counter()
-    outputs: list[dict[str, Any]] = []
-    bar = tqdm(total=len(refs), desc=desc, unit="obs", disable=not progress, dynamic_ncols=True)
     pairs_done = 0
 
-    def collect(out: dict[str, Any]) -> None:
+    def rate(out: dict[str, Any]) -> dict[str, str]:
         nonlocal pairs_done
-        outputs.append(out)
         pairs_done += out["pairs"]
-        elapsed = time.perf_counter() - t_start
-        bar.set_postfix(pairs_per_s=f"{pairs_done / max(elapsed, 1e-9):.0f}")
-        bar.update(1)
+        return {"pairs_per_s": f"{pairs_done / max(time.perf_counter() - t_start, 1e-9):.0f}"}
 
-    try:
-        if workers <= 1 or len(refs) <= 1:
-            judge = _PairJudge(views, meshes, config)
-            for i in refs:
-                collect(judge.run(i))
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(processes=workers, initializer=_init_worker, initargs=(list(views), meshes, config)) as pool:
-                for out in pool.imap_unordered(_run_worker, refs, chunksize=1):
-                    collect(out)
-    finally:
-        bar.close()
+    outputs = dict(done)
+    if todo:
+        # What every task reads, made once: meshes and ICP clouds for the whole set (candidates are all views).
+        table = MeshTable({identity: meshes(identity) for identity in sorted({v.identity for v in views})})
+        shared = {"views": list(views), "meshes": table, "clouds": [icp_cloud(v, config) for v in views],
+                  "config": config}
+        unsaved: list[dict[str, Any]] = []
+        last_save = time.monotonic()
+        try:
+            for _, out in runner.map(_judge_reference, todo, shared, desc=desc, unit_name="obs", done=len(done),
+                                     progress=progress, postfix=rate):
+                outputs[out["i"]] = out
+                unsaved.append(out)
+                if parts is not None and time.monotonic() - last_save >= PART_FLUSH_SECONDS:
+                    _write_part(parts, unsaved, len(config.deltas))
+                    unsaved, last_save = [], time.monotonic()
+        finally:  # also when interrupted: what finished is kept
+            if parts is not None and unsaved:
+                _write_part(parts, unsaved, len(config.deltas))
     elapsed = time.perf_counter() - t_start
-    outputs.sort(key=lambda o: o["i"])
+    ordered = [outputs[i] for i in sorted(outputs)]
     deltas = config.deltas
     ref_l, oth_l, tf_l, vio_l = [], [], [], []
-    for out in outputs:
+    for out in ordered:
         for j, transform, viol in out["rows"]:
             ref_l.append(out["i"])
             oth_l.append(j)
             tf_l.append(transform)
             vio_l.append(viol)
-    pairs = sum(o["pairs"] for o in outputs)
-    pruned = sum(o["pruned"] for o in outputs)
-    early = sum(o["early"] for o in outputs)
-    own = np.array([o["own_plausible"] for o in outputs], dtype=bool).reshape(len(outputs), len(deltas))
+    pairs = sum(o["pairs"] for o in ordered)
+    pruned = sum(o["pruned"] for o in ordered)
+    early = sum(o["early"] for o in ordered)
+    own = np.array([o["own_plausible"] for o in ordered], dtype=bool).reshape(len(ordered), len(deltas))
+    computed_pairs = sum(outputs[i]["pairs"] for i in todo)
     stats = {
         "observations": len(views), "references": len(refs), "pairs": pairs, "pruned_by_prefilter": pruned,
-        "rejected_on_sparse_pixels": early,
-        "seconds": elapsed, "pairs_per_second": pairs / max(elapsed, 1e-9), "workers": workers,
-        "icp_seconds_cpu": sum(o["t_icp"] for o in outputs), "judge_seconds_cpu": sum(o["t_judge"] for o in outputs),
+        "rejected_on_sparse_pixels": early, "resumed_references": len(done),
+        "seconds": elapsed, "pairs_per_second": computed_pairs / max(elapsed, 1e-9),
+        "workers": runner.parallelism if todo else 0, "executor": runner.describe() if todo else "resumed",
+        "icp_seconds_cpu": sum(o["t_icp"] for o in ordered), "judge_seconds_cpu": sum(o["t_judge"] for o in ordered),
         "own_ground_truth_plausible_rate": {str(d): float(own[:, k].mean()) if len(own) else float("nan")
                                             for k, d in enumerate(deltas)},
         "config": config.to_dict(),
     }
-    result = PlausibleSets(deltas=tuple(deltas), references=np.array([o["i"] for o in outputs], dtype=np.int64),
-                           object_pixels=np.array([o["object_pixels"] for o in outputs], dtype=np.int64),
+    result = PlausibleSets(deltas=tuple(deltas), references=np.array([o["i"] for o in ordered], dtype=np.int64),
+                           object_pixels=np.array([o["object_pixels"] for o in ordered], dtype=np.int64),
                            ref=np.array(ref_l, dtype=np.int64), other=np.array(oth_l, dtype=np.int64),
                            transforms=np.array(tf_l, dtype=np.float64).reshape(-1, 4, 4),
                            violations=np.array(vio_l, dtype=np.int64).reshape(-1, len(deltas)),
@@ -516,20 +575,27 @@ def cache_key(fingerprint: str, config: PlausibleConfig, references: Sequence[in
 
 def cached_plausible_sets(views: Sequence[EvalView], meshes: MeshSource, fingerprint: str, cache_dir: str | Path,
                           config: PlausibleConfig | None = None, references: Sequence[int] | None = None,
-                          workers: int = 1, progress: bool = True, desc: str = "plausible sets",
+                          runner: TaskRunner | None = None, progress: bool = True, desc: str = "plausible sets",
                           recompute: bool = False) -> tuple[PlausibleSets, Path, bool]:
     """:func:`compute_plausible_sets` with an on-disk cache keyed by dataset fingerprint + parameters.
+
+    A run that was killed left its finished references in ``plausible_<key>.parts/`` beside the cache file; the
+    next call computes only the rest (``recompute`` starts over).
 
     Returns:
         (sets, cache file, whether it came from the cache).
     """
     config = config or PlausibleConfig()
     path = Path(cache_dir) / f"plausible_{cache_key(fingerprint, config, references)}.npz"
-    if path.exists() and not recompute:
+    parts = path.with_suffix(".parts")
+    if recompute:
+        shutil.rmtree(parts, ignore_errors=True)
+    elif path.exists():
         return PlausibleSets.load(path), path, True
-    sets = compute_plausible_sets(views, meshes, config, references, workers, progress, desc)
+    sets = compute_plausible_sets(views, meshes, config, references, runner, progress, desc, parts_dir=parts)
     sets.stats["fingerprint"] = fingerprint
     sets.save(path)
+    shutil.rmtree(parts, ignore_errors=True)
     return sets, path, False
 
 
@@ -566,4 +632,4 @@ def plausible_shape_occupancy(views: Sequence[EvalView], meshes: MeshSource | Ca
 
 __all__ = ["EvalView", "MeshSource", "MeshTable", "ObservationModelError", "PlausibleConfig", "PlausibleSetError",
            "PlausibleSets", "ProceduralMeshes", "cache_key", "cached_plausible_sets", "compute_plausible_sets",
-           "dataset_fingerprint", "diameter", "diameter_bound_rejects", "plausible_shape_occupancy"]
+           "dataset_fingerprint", "diameter", "diameter_bound_rejects", "icp_cloud", "plausible_shape_occupancy"]
