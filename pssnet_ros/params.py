@@ -3,8 +3,10 @@
 Ranges live in the descriptors (rclpy rejects out-of-range values itself, with a reason); rules that span
 several parameters or are not ranges (choices, vector length, num_samples <= max_num_samples, min_depth <
 max_depth, voxel size vs. the model) are checked by :func:`check_values`, which the node's set-parameters
-callback calls. Nothing is silently clamped. Read-only parameters (model, device, threads) are fixed at
-start-up. Defaults here equal config/completion_node.yaml (a test checks that).
+callback calls. Nothing is silently clamped. The model parameters (model_path, device, threads) and
+autostart take effect on the lifecycle ``configure`` and can change only while the node is unconfigured
+(:data:`CONFIGURE_ONLY`); the others can change at any time. Defaults here equal config/completion_node.yaml
+(a test checks that).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ class ParamSpec:
         description: what it does, with its unit.
         low: inclusive lower bound (numbers only).
         high: inclusive upper bound (numbers only).
-        read_only: fixed after start-up.
+        configure_only: read on the lifecycle configure; changes are refused while the node is configured.
         choices: allowed values (strings only).
         constraints: extra rule in words (shown in the descriptor's additional_constraints).
     """
@@ -41,7 +43,7 @@ class ParamSpec:
     description: str
     low: float | None = None
     high: float | None = None
-    read_only: bool = False
+    configure_only: bool = False
     choices: tuple[str, ...] = ()
     constraints: str = ""
 
@@ -64,12 +66,14 @@ class ParamSpec:
                 ParameterType.PARAMETER_DOUBLE_ARRAY: "double[]"}[self.ros_type]
 
     def descriptor(self) -> ParameterDescriptor:
-        """The ROS parameter descriptor (type, description, range, read-only flag)."""
+        """The ROS parameter descriptor (type, description, range)."""
         constraints = self.constraints
         if self.choices:
             constraints = (f"one of: {', '.join(self.choices)}" + (f"; {constraints}" if constraints else ""))
+        if self.configure_only:
+            constraints = "set before configure" + (f"; {constraints}" if constraints else "")
         descriptor = ParameterDescriptor(name=self.name, type=self.ros_type, description=self.description,
-                                         additional_constraints=constraints, read_only=self.read_only)
+                                         additional_constraints=constraints)
         if self.ros_type == ParameterType.PARAMETER_INTEGER and self.low is not None:
             descriptor.integer_range = [IntegerRange(from_value=int(self.low), to_value=int(self.high), step=0)]
         elif self.ros_type == ParameterType.PARAMETER_DOUBLE and self.low is not None:
@@ -100,10 +104,12 @@ _GRASPS = GraspConfig()
 _PIPELINE = PipelineConfig()
 
 PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec("autostart", True, "configure and activate at start-up (the plain node); false = wait for a "
+              "lifecycle manager", configure_only=True),
     ParamSpec("model_path", "", "checkpoint file of the completion model; empty = the shipped default 32^3 PSSNet",
-              read_only=True),
-    ParamSpec("device", "cpu", "torch device of the model", read_only=True, choices=("cpu", "cuda")),
-    ParamSpec("threads", 0, "torch CPU threads; 0 = torch's default (all cores)", 0, 256, read_only=True),
+              configure_only=True),
+    ParamSpec("device", "cpu", "torch device of the model", configure_only=True, choices=("cpu", "cuda")),
+    ParamSpec("threads", 0, "torch CPU threads; 0 = torch's default (all cores)", 0, 256, configure_only=True),
     ParamSpec("num_samples", 20, "completions per call when the request says 0 (and in continuous mode)", 1, 1000,
               constraints="<= max_num_samples"),
     ParamSpec("max_num_samples", 100, "requests asking for more samples are rejected", 1, 1000),
@@ -165,6 +171,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
 )
 
 SPECS: dict[str, ParamSpec] = {spec.name: spec for spec in PARAMETERS}
+CONFIGURE_ONLY: frozenset[str] = frozenset(spec.name for spec in PARAMETERS if spec.configure_only)
 
 
 def defaults() -> dict[str, Any]:
@@ -251,7 +258,7 @@ def markdown_table() -> str:
     """The parameter table (Markdown), for the README and ``completion_node --help``."""
     lines = ["| parameter | type | default | range | description |", "|---|---|---|---|---|"]
     for spec in PARAMETERS:
-        description = spec.description + (" (read-only)" if spec.read_only else "")
+        description = spec.description + (" (set before configure)" if spec.configure_only else "")
         lines.append(f"| `{spec.name}` | {spec.type_name} | `{_yaml_value(spec.default)}` | {spec.range_text()} | "
                      f"{description} |")
     return "\n".join(lines)
@@ -278,7 +285,7 @@ def default_yaml() -> str:
              "/**:", "  ros__parameters:"]
     for spec in PARAMETERS:
         notes = [n for n in (spec.range_text(), spec.constraints if spec.low is not None else "",
-                             "read-only" if spec.read_only else "") if n]
+                             "set before configure" if spec.configure_only else "") if n]
         lines.append(f"    # {spec.description}" + (f" ({'; '.join(notes)})" if notes else ""))
         lines.append(f"    {spec.name}: {_yaml_value(spec.default)}")
     return "\n".join(lines) + "\n"

@@ -10,7 +10,16 @@ import yaml
 from rcl_interfaces.msg import ParameterType
 
 from pssnet_core.pipeline import PipelineConfig
-from pssnet_ros.params import PARAMETERS, SPECS, check_values, default_yaml, defaults, markdown_table, pipeline_config
+from pssnet_ros.params import (
+    CONFIGURE_ONLY,
+    PARAMETERS,
+    SPECS,
+    check_values,
+    default_yaml,
+    defaults,
+    markdown_table,
+    pipeline_config,
+)
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "completion_node.yaml"
 
@@ -30,13 +39,15 @@ def test_defaults_are_valid_and_build_the_pipeline_config():
     assert isinstance(config, PipelineConfig) and config.num_samples == 20 and config.up_vector == (0.0, -1.0, 0.0)
 
 
-def test_descriptors_carry_type_range_and_read_only():
+def test_descriptors_carry_type_range_and_when_they_may_change():
     d = SPECS["num_samples"].descriptor()
     assert d.type == ParameterType.PARAMETER_INTEGER and d.description
     assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (1, 1000)
     d = SPECS["sync_tolerance"].descriptor()
     assert d.type == ParameterType.PARAMETER_DOUBLE and d.floating_point_range[0].to_value == 10.0
-    assert SPECS["model_path"].descriptor().read_only and SPECS["device"].descriptor().read_only
+    for name in ("autostart", "model_path", "device", "threads"):
+        assert name in CONFIGURE_ONLY and "set before configure" in SPECS[name].descriptor().additional_constraints
+    assert "num_samples" not in CONFIGURE_ONLY
     assert "one of: cpu, cuda" in SPECS["device"].descriptor().additional_constraints
     assert SPECS["up_vector"].descriptor().type == ParameterType.PARAMETER_DOUBLE_ARRAY
     for spec in PARAMETERS:
@@ -91,13 +102,12 @@ def param_node():
     context.try_shutdown()
 
 
-def test_rclpy_enforces_descriptor_ranges_types_and_read_only(param_node):
+def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
     from rclpy.parameter import Parameter
 
     results = param_node.set_parameters([
         Parameter("num_samples", value=5000), Parameter("sync_tolerance", value="fast"),
-        Parameter("model_path", value="/tmp/other.pt"), Parameter("num_samples", value=30)])
+        Parameter("num_samples", value=30)])
     assert not results[0].successful and "out of range" in results[0].reason
     assert not results[1].successful and "type" in results[1].reason.lower()
-    assert not results[2].successful and "read-only" in results[2].reason
-    assert results[3].successful and param_node.get_parameter("num_samples").value == 30
+    assert results[2].successful and param_node.get_parameter("num_samples").value == 30
