@@ -15,6 +15,7 @@ from pssnet_ros.params import (
     PARAMETERS,
     SPECS,
     check_values,
+    config_default,
     default_yaml,
     defaults,
     markdown_table,
@@ -57,15 +58,15 @@ def test_descriptors_carry_type_range_and_when_they_may_change():
 
 
 @pytest.mark.parametrize("changes, reason", [
-    ({"num_samples": 200}, r"num_samples \(200\) must not exceed max_num_samples \(100\)"),
+    ({"num_samples": 200}, r"num_samples must be in \[1, max_num_samples=100\], got 200"),
     ({"num_samples": 0}, r"num_samples must be in \[1, 1000\], got 0"),
-    ({"min_depth": 2.0, "max_depth": 1.0}, r"min_depth \(2.0\) must be smaller than max_depth \(1.0\)"),
+    ({"min_depth": 2.0, "max_depth": 1.0}, r"need 0 <= min_depth < max_depth, got 2.0 and 1.0"),
     ({"device": "tpu"}, "device must be one of cpu, cuda, got 'tpu'"),
     ({"up_vector": [0.0, 0.0, 0.0]}, "up_vector must be 3 finite numbers, not all zero"),
     ({"up_vector": [0.0, 1.0]}, "up_vector must be 3 finite numbers"),
     ({"up_vector": [0.0, float("nan"), 1.0]}, "up_vector must be 3 finite numbers"),
     ({"max_rate_hz": float("inf")}, "max_rate_hz must be finite"),
-    ({"sync_tolerance": -0.1}, r"sync_tolerance must be in \[0, 10\]"),
+    ({"sync_tolerance": -0.1}, r"sync_tolerance must be in \[0.0, 10.0\], got -0.1"),
     ({"continuous": 1}, "continuous must be a bool, got 1"),
     ({"seed": 1.5}, "seed must be an int, got 1.5"),
     ({"nonsense": 1}, "unknown parameter 'nonsense'"),
@@ -111,3 +112,32 @@ def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
     assert not results[0].successful and "out of range" in results[0].reason
     assert not results[1].successful and "type" in results[1].reason.lower()
     assert results[2].successful and param_node.get_parameter("num_samples").value == 30
+
+
+def test_every_pipeline_parameter_names_a_config_field_with_its_default():
+    fields = [spec.field for spec in PARAMETERS if spec.field]
+    assert len(fields) == len(set(fields)) == 27
+    for spec in PARAMETERS:
+        if spec.field:
+            assert spec.default == config_default(spec.field), spec.name
+    # Each field-backed value reaches its field: change every one at once and read them back from the config.
+    values = defaults()
+    changed = {"num_samples": 7, "max_num_samples": 50, "box_temperature": 1.5, "seed": -1, "voxel_size": 0.004,
+               "front_margin": 2.0, "bottom_margin": 0.5, "up_vector": [0.0, 0.0, 1.0], "estimate_up": True,
+               "support_plane_distance": 0.002, "support_plane_max_tilt_deg": 30.0, "min_depth": 0.2,
+               "max_depth": 3.0, "min_mask_pixels": 10, "min_valid_points": 5, "grasp_max_opening": 0.1,
+               "grasp_finger_length": 0.06, "grasp_finger_width": 0.015, "grasp_finger_thickness": 0.012,
+               "grasp_palm_depth": 0.03, "grasp_min_object_width": 0.004, "grasp_clearance": 0.004,
+               "grasp_max_candidates": 300, "grasp_top_yaws": 4, "grasp_side_yaws": 6, "grasp_top_k": 3,
+               "grasp_min_score": 0.25}
+    assert set(changed) == {s.name for s in PARAMETERS if s.field}
+    config = pipeline_config({**values, **changed})
+    for name, value in changed.items():
+        got = config_value(config, SPECS[name].field)
+        assert got == (tuple(value) if isinstance(value, list) else value), name
+
+
+def config_value(config, path: str):
+    for part in path.split("."):
+        config = getattr(config, part)
+    return config
