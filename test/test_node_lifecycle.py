@@ -14,11 +14,18 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from pssnet_interfaces.srv import SampleCompletions
-from test_node_helpers import domain_for, make_request, node_args, render_mug_scene, stamped_header, tiny_checkpoint
+from test_node_helpers import (
+    domain_for,
+    make_request,
+    node_args,
+    render_mug_scene,
+    running_node,
+    stamped_header,
+    tiny_checkpoint,
+)
 
 from pssnet_ros.client import NODE, SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
-from pssnet_ros.processes import RosProcess, ros_env
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(11)
@@ -32,14 +39,9 @@ def checkpoint(tmp_path_factory):
 @pytest.fixture(scope="module")
 def node(tmp_path_factory):
     missing = tmp_path_factory.mktemp("missing") / "absent.pt"
-    process = RosProcess.python_module("pssnet_ros.completion_node",
-                                       node_args(missing, autostart=False, threads=1, num_samples=4),
-                                       ros_env(DOMAIN), name="completion_node")
-    try:
-        process.wait_for(r"unconfigured: waiting for a lifecycle manager", timeout=120)
+    with running_node(node_args(missing, autostart=False, threads=1, num_samples=4), DOMAIN,
+                      r"unconfigured: waiting for a lifecycle manager") as process:
         yield process
-    finally:
-        process.stop()
 
 
 @pytest.fixture(scope="module")

@@ -20,13 +20,14 @@ from test_node_helpers import (
     node_args,
     node_checkpoint,
     render_mug_scene,
+    running_node,
     stamped_header,
 )
 
 from pssnet_core.geometry import CameraIntrinsics
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy
-from pssnet_ros.processes import RosProcess, ros_env, stale_shm_files
+from pssnet_ros.processes import stale_shm_files
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(1)
@@ -45,14 +46,9 @@ def checkpoint(tmp_path_factory):
 @pytest.fixture(scope="module")
 def node(checkpoint, scene):
     path, _ = checkpoint
-    process = RosProcess.python_module(
-        "pssnet_ros.completion_node", node_args(path, up_vector=scene.up, num_samples=8, threads=1),
-        ros_env(DOMAIN), name="completion_node")
-    try:
-        process.wait_for(r"ready: serving /pssnet/sample_completions", timeout=120)
+    with running_node(node_args(path, up_vector=scene.up, num_samples=8, threads=1), DOMAIN,
+                      r"ready: serving /pssnet/sample_completions") as process:
         yield process
-    finally:
-        process.stop()
 
 
 @pytest.fixture(scope="module")
