@@ -17,7 +17,7 @@ demo: setup
 
 # pytest exits 5 when it collects no test: that is a failure here, like any other non-zero exit.
 test: setup
-	$(VENV)/bin/ruff check pssnet_core pssnet_ros test benchmarks scripts
+	$(VENV)/bin/ruff check pssnet_core pssnet_ros test benchmarks scripts launch
 	$(VENV)/bin/pytest -q
 
 test-slow: setup

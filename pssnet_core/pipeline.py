@@ -51,8 +51,7 @@ class PipelineConfig:
         num_samples: completions per call when the caller does not say.
         max_num_samples: requests above this are rejected (bounded time and memory).
         seed: latent-noise seed; the same input and seed give the same completions. -1 draws a fresh seed
-            per call (from a generator seeded by ``seed_base``).
-        seed_base: seed of that generator (only with ``seed == -1``).
+            per call from the operating system's entropy (the result reports the seed it used).
         voxel_size: grid voxel size (metres); 0 = the model's (the voxel size it was trained with).
         front_margin: voxels between the grid face and the nearest observed point along the view.
         bottom_margin: voxels between the grid bottom and the lowest observed point.
@@ -77,7 +76,6 @@ class PipelineConfig:
     num_samples: int = 20
     max_num_samples: int = 100
     seed: int = 0
-    seed_base: int = 0
     voxel_size: float = 0.0
     front_margin: float = 1.0
     bottom_margin: float = 1.0
@@ -182,7 +180,7 @@ class CompletionPipeline:
         self._lock = threading.Lock()
         self._config = PipelineConfig()
         self.config = config or PipelineConfig()
-        self._seed_rng = np.random.default_rng(self._config.seed_base)
+        self._seed_rng = np.random.default_rng()  # seed -1: a fresh seed per call, not a replayed sequence
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None, config: PipelineConfig | None = None,

@@ -1,14 +1,22 @@
 """completion_node: samples diverse plausible completions of a segmented object and ranks grasps across them.
 
+A managed (lifecycle) node, as ROS 2 drivers are: ``configure`` reads and checks the parameters and loads the
+model, ``activate`` opens the subscriptions and the service and enables the publishers, ``deactivate`` closes
+them, ``cleanup`` drops the model; a failed ``configure`` (bad parameter, missing model) leaves the node
+unconfigured, and it can be retried after fixing the parameter. With ``autostart`` (the default) the node
+configures and activates itself at start-up and exits with a one-line error if it cannot: the plain node.
+
 Interface (node name ``pssnet``; relative names are remappable):
 
 - subscribes ``depth`` (sensor_msgs/Image 32FC1 m | 16UC1), ``mask`` (mono8 | 8UC1), ``camera_info``;
   synchronised by stamp within ``sync_tolerance``; best-effort QoS, so reliable and sensor-data publishers
   both connect.
-- serves ``~/sample_completions`` (pssnet_interfaces/srv/SampleCompletions) -> /pssnet/sample_completions,
-  and ``~/get_stats`` (std_srvs/Trigger: counters as JSON, see :meth:`CompletionNode.stats`).
+- serves ``~/sample_completions`` (pssnet_interfaces/srv/SampleCompletions) -> /pssnet/sample_completions
+  while active, and ``~/get_stats`` (std_srvs/Trigger: counters as JSON, see :meth:`CompletionNode.stats`)
+  in every state; the standard lifecycle services ``~/change_state``, ``~/get_state``, ...
 - publishes in continuous mode ``~/completions`` (PointCloud2 x, y, z + ``sample``), ``~/known_occupied``,
-  ``~/grasps`` (PoseArray, best first), ``~/grasp_candidates`` (pssnet_interfaces/msg/GraspCandidates).
+  ``~/grasps`` (PoseArray, best first), ``~/grasp_candidates`` (pssnet_interfaces/msg/GraspCandidates);
+  and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) at 1 Hz in every state.
 
 All outputs carry the input's header. The node only converts messages; the work is done by
 :class:`pssnet_core.pipeline.CompletionPipeline`.
@@ -25,6 +33,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from pssnet_interfaces.msg import GraspCandidates
 from pssnet_interfaces.srv import SampleCompletions
@@ -32,9 +41,11 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-from rclpy.node import Node
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.subscription import Subscription
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
@@ -42,15 +53,27 @@ from std_srvs.srv import Trigger
 
 from pssnet_core.pipeline import CompletionPipeline, PipelineResult
 from pssnet_ros import conversions
+from pssnet_ros.completion_io import (
+    OUTPUT_TOPICS,
+    STREAMS,
+    SYNC_QUEUE_SIZE,
+    complete_messages,
+    grasp_fields,
+    load_pipeline,
+    output_messages,
+    stamp_ns,
+)
+from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
 from pssnet_ros.newest_slot import NewestSlot
-from pssnet_ros.params import PARAMETERS, check_values, markdown_table, pipeline_config
+from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, check_values, markdown_table, pipeline_config
 from pssnet_ros.processes import clean_stale_shm
 from pssnet_ros.spinning import spin_until_shutdown
 from pssnet_ros.sync import StampSynchronizer, SyncedSet
 
 NODE_NAME = "pssnet"
-STREAMS = ("depth", "mask", "camera_info")
 WARN_THROTTLE_S = 2.0
+DIAGNOSTICS_PERIOD_S = 1.0
+SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 #: Best effort + volatile matches both best-effort (sensor data) and reliable publishers.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
@@ -63,6 +86,9 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=Re
 #: RELIABILITY.md). 64 waiting 640x480 requests hold about 100 MB at most.
 SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
+#: Continuous-mode outputs: name -> type (topics: completion_io.OUTPUT_TOPICS, ``~/name`` of this node).
+OUTPUT_TYPES: dict[str, type] = {"completions": PointCloud2, "known_occupied": PointCloud2, "grasps": PoseArray,
+                                 "grasp_candidates": GraspCandidates}
 
 
 class StartupError(RuntimeError):
@@ -73,52 +99,72 @@ class InputError(ValueError):
     """A request or a topic set cannot be used (no data yet, stale, unsynchronised stamps)."""
 
 
-def stamp_ns(header: Header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
-class CompletionNode(Node):
+class CompletionNode(LifecycleNode):
     """The thin ROS layer over :class:`CompletionPipeline` (see the module docstring for the interface)."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        try:
-            self._values = self._declare()
-            self.pipeline = self._load_pipeline()
-        except StartupError:
-            self.destroy_node()
-            raise
+        self._guard_change_state()
         # Guards the counters, the latest set and the slot's put/done, so that stats() is one consistent snapshot.
         self._lock = threading.Lock()
         self._counters = {"sets_synchronised": 0, "sets_processed": 0, "sets_dropped_stale": 0,
                           "sets_dropped_invalid": 0, "service_calls": 0, "service_failures": 0}
         self._latest: SyncedSet | None = None  # newest synchronised set (the service's default input)
+        self.pipeline: CompletionPipeline | None = None  # loaded on configure, dropped on cleanup
+        self._configure_error = ""
+        self._active = False
+        self._endpoints: list[Any] = []  # subscriptions and the sample service: they exist while active
+        self._outputs: dict[str, Any] = {}  # lifecycle publishers: created on configure, enabled while active
+        try:
+            self._values = self._declare()
+        except StartupError:
+            self.destroy_node()
+            raise
         # Continuous mode: the worker completes the newest pending set at most max_rate_hz; a newer set replaces
-        # an unprocessed one (one slot: bounded memory, no queue).
-        self._slot: NewestSlot[SyncedSet] = NewestSlot(self._values["max_rate_hz"],
-                                                       paused=not self._values["continuous"])
-        self._sync = StampSynchronizer(STREAMS, self._values["sync_tolerance"], queue_size=10)
+        # an unprocessed one (one slot: bounded memory, no queue). Paused unless active.
+        self._slot: NewestSlot[SyncedSet] = NewestSlot(self._values["max_rate_hz"], paused=True)
+        self._sync = StampSynchronizer(STREAMS, self._values["sync_tolerance"], queue_size=SYNC_QUEUE_SIZE)
+        self._health = CompletionHealth()
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
-
-        topics = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(Image, "depth", lambda m: self._on_input("depth", m), INPUT_QOS,
-                                 callback_group=topics)
-        self.create_subscription(Image, "mask", lambda m: self._on_input("mask", m), INPUT_QOS,
-                                 callback_group=topics)
-        self.create_subscription(CameraInfo, "camera_info", lambda m: self._on_input("camera_info", m), INPUT_QOS,
-                                 callback_group=topics)
-        # Inference has its own group so that topic callbacks keep flowing while a request runs.
-        self.create_service(SampleCompletions, "~/sample_completions", self._on_sample_completions,
-                            qos_profile=SERVICE_QOS, callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_service(Trigger, "~/get_stats", self._on_get_stats, callback_group=topics)
-        self._pub_completions = self.create_publisher(PointCloud2, "~/completions", OUTPUT_QOS)
-        self._pub_known = self.create_publisher(PointCloud2, "~/known_occupied", OUTPUT_QOS)
-        self._pub_grasps = self.create_publisher(PoseArray, "~/grasps", OUTPUT_QOS)
-        self._pub_candidates = self.create_publisher(GraspCandidates, "~/grasp_candidates", OUTPUT_QOS)
-
+        self._topics_group = MutuallyExclusiveCallbackGroup()
+        self.create_service(Trigger, "~/get_stats", self._on_get_stats, callback_group=self._topics_group)
+        self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, callback_group=self._topics_group)
         self._worker = threading.Thread(target=self._continuous_loop, name="pssnet_continuous", daemon=True)
         self._worker.start()
+        if self._values["autostart"]:
+            self._start()
+
+    def _guard_change_state(self) -> None:
+        """Answers a transition the current state does not have with success=False instead of dying.
+
+        rclpy (7.1) raises RCLError out of the change_state service callback for such a request, which ends the
+        executor's spin: any client could stop the node with one bad request. The state is unchanged then.
+        """
+        service = self._service_change_state
+        change_state = service.callback
+
+        def change_state_or_refuse(request: Any, response: Any) -> Any:
+            try:
+                return change_state(request, response)
+            except _rclpy.RCLError as error:
+                self.get_logger().warning(f"refused lifecycle transition id {request.transition.id} "
+                                          f"{request.transition.label!r}: {error}")
+                response.success = False
+                return response
+
+        service.callback = change_state_or_refuse
+
+    def _start(self) -> None:
+        """configure + activate, as the plain node does; raises :class:`StartupError` with the reason."""
+        if self.trigger_configure() != SUCCESS:
+            reason = self._configure_error or "configure failed"
+            self.destroy_node()
+            raise StartupError(reason)
+        if self.trigger_activate() != SUCCESS:
+            self.destroy_node()
+            raise StartupError("activation failed (see the log)")
 
     # ------------------------------------------------------------------------------------------ set-up
     def _declare(self) -> dict[str, Any]:
@@ -130,45 +176,101 @@ class CompletionNode(Node):
             except (InvalidParameterValueException, InvalidParameterTypeException) as error:
                 raise StartupError(f"invalid parameter {spec.name}: {error}") from None
         values["up_vector"] = [float(v) for v in values["up_vector"]]
+        return values
+
+    def _load_pipeline(self, values: dict[str, Any]) -> CompletionPipeline:
         reason = check_values(values)
         if reason:
             raise StartupError(f"invalid parameters: {reason}")
-        return values
-
-    def _load_pipeline(self) -> CompletionPipeline:
-        from pssnet_core.models.checkpoint import CheckpointError  # imports torch
-
-        values = self._values
         try:
-            config = pipeline_config(values)
-        except ValueError as error:
-            raise StartupError(f"invalid parameters: {error}") from None
-        try:
-            pipeline = CompletionPipeline.from_checkpoint(values["model_path"] or None, None, device=values["device"],
-                                                          threads=values["threads"] or None)
-        except CheckpointError as error:
-            raise StartupError(f"cannot load the completion model: {error}") from None
-        except ValueError as error:  # e.g. device cuda without CUDA
-            raise StartupError(f"cannot load the completion model: {error}") from None
-        try:
-            pipeline.config = config
-        except ValueError as error:
-            raise StartupError(f"invalid parameters for this model: {error}") from None
+            pipeline = load_pipeline(values)
+        except ValueError as error:  # missing or corrupt model, unavailable device, parameters the model refuses
+            raise StartupError(str(error)) from None
         completer = pipeline.completer
         self.get_logger().info(
             f"model {completer.model_name} {completer.grid_size}^3 from {completer.info.get('path')} on "
             f"{values['device']} ({completer.precision}); voxel {pipeline.grid_config().voxel_size * 1000:.2f} mm")
         return pipeline
 
+    # ------------------------------------------------------------------------------------- lifecycle
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self.pipeline = self._load_pipeline(self._values)
+        except StartupError as error:
+            self._configure_error = str(error)
+            self.get_logger().error(f"configure failed, still unconfigured: {error}")
+            return FAILURE
+        self._configure_error = ""
+        self._outputs = {name: self.create_lifecycle_publisher(msg_type, f"~/{name}", OUTPUT_QOS)
+                         for name, msg_type in OUTPUT_TYPES.items()}
+        return SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        for stream, msg_type in (("depth", Image), ("mask", Image), ("camera_info", CameraInfo)):
+            self._endpoints.append(self.create_subscription(
+                msg_type, stream, lambda m, stream=stream: self._on_input(stream, m), INPUT_QOS,
+                callback_group=self._topics_group))
+        # Inference has its own group so that topic callbacks keep flowing while a request runs.
+        self._endpoints.append(self.create_service(SampleCompletions, "~/sample_completions",
+                                                   self._on_sample_completions, qos_profile=SERVICE_QOS,
+                                                   callback_group=MutuallyExclusiveCallbackGroup()))
+        with self._lock:
+            self._active = True
+            self._slot.paused = not self._values["continuous"]
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._close_endpoints()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._close_endpoints()
+        self._release()
+        return SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.get_logger().error(f"error in a transition from {state.label}; releasing everything, unconfigured")
+        self._close_endpoints()
+        self._release()
+        return SUCCESS
+
+    def _close_endpoints(self) -> None:
+        with self._lock:
+            self._active = False
+            self._slot.paused = True
+        for endpoint in self._endpoints:
+            if isinstance(endpoint, Subscription):
+                self.destroy_subscription(endpoint)
+            else:
+                self.destroy_service(endpoint)
+        self._endpoints = []
+
+    def _release(self) -> None:
+        for publisher in self._outputs.values():
+            self.destroy_lifecycle_publisher(publisher)
+        self._outputs = {}
+        with self._lock:
+            self._latest = None
+        self.pipeline = None
+
     # -------------------------------------------------------------------------------------- parameters
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
         values = dict(self._values)
         for param in params:
             values[param.name] = param.value
+        pipeline = self.pipeline
+        fixed = [p.name for p in params if p.name in CONFIGURE_ONLY and p.value != self._values[p.name]]
+        if fixed and pipeline is not None:
+            return SetParametersResult(successful=False, reason=f"{', '.join(fixed)} can only change while the "
+                                                                f"node is unconfigured (cleanup first)")
         reason = check_values(values)
-        if reason is None:
+        if reason is None and pipeline is not None:
             try:
-                self.pipeline.check_config(pipeline_config(values))
+                pipeline.check_config(pipeline_config(values))
             except ValueError as error:
                 reason = str(error)
         return SetParametersResult(successful=reason is None, reason=reason or "")
@@ -176,11 +278,15 @@ class CompletionNode(Node):
     def _apply_parameters(self, params: list[Parameter]) -> None:
         for param in params:
             self._values[param.name] = param.value
-        self.pipeline.config = pipeline_config(self._values)
+        self._values["up_vector"] = [float(v) for v in self._values["up_vector"]]
+        pipeline = self.pipeline
+        if pipeline is not None:
+            pipeline.config = pipeline_config(self._values)
         if any(p.name == "sync_tolerance" for p in params):
             self._sync.tolerance_s = self._values["sync_tolerance"]
-        self._slot.max_rate_hz = self._values["max_rate_hz"]
-        self._slot.paused = not self._values["continuous"]
+        with self._lock:
+            self._slot.max_rate_hz = self._values["max_rate_hz"]
+            self._slot.paused = not (self._active and self._values["continuous"])
 
     # ------------------------------------------------------------------------------------------ topics
     def _count(self, key: str, n: int = 1) -> int:
@@ -195,7 +301,7 @@ class CompletionNode(Node):
         with self._lock:
             self._counters["sets_synchronised"] += 1
             self._latest = synced
-            if self._values["continuous"]:
+            if self._active and self._values["continuous"]:
                 self._slot.put(synced)
 
     def _age_s(self, synced: SyncedSet) -> float:
@@ -220,6 +326,7 @@ class CompletionNode(Node):
             self.get_logger().warning(f"dropped a stale input set ({count} so far): {age:.2f} s old, "
                                       f"max_input_age {max_age} s", throttle_duration_sec=WARN_THROTTLE_S)
             return
+        t0 = time.perf_counter()
         try:
             result, header = self._run(synced.messages["depth"], synced.messages["mask"],
                                        synced.messages["camera_info"], 0, self._values["continuous_grasps"])
@@ -234,31 +341,25 @@ class CompletionNode(Node):
             self.get_logger().error(f"completion failed ({count} dropped so far): {type(error).__name__}: {error}\n"
                                     f"{traceback.format_exc()}", throttle_duration_sec=WARN_THROTTLE_S)
             return
+        self._health.completed(time.perf_counter() - t0)
         self._finish("sets_processed")
 
     def _publish(self, result: PipelineResult, header: Header) -> None:
-        points, index = result.merged()
-        self._pub_completions.publish(conversions.points_to_pointcloud2(points, header, index))
-        self._pub_known.publish(conversions.points_to_pointcloud2(result.known_occupied, header))
-        poses, scores, widths = self._grasp_fields(result)
-        self._pub_grasps.publish(PoseArray(header=header, poses=poses))
-        self._pub_candidates.publish(GraspCandidates(header=header, poses=poses, scores=scores, widths=widths))
-
-    @staticmethod
-    def _grasp_fields(result: PipelineResult) -> tuple[list, list[float], list[float]]:
-        grasps = result.grasps
-        if grasps is None or len(grasps.scores) == 0:
-            return [], [], []
-        poses = [conversions.matrix_to_pose(m) for m in grasps.poses]
-        return poses, [float(s) for s in grasps.scores], [float(w) for w in grasps.widths]
+        outputs = self._outputs
+        if not outputs:  # cleaned up while this set was being completed
+            return
+        messages = output_messages(result, header)
+        for name in OUTPUT_TOPICS:
+            outputs[name].publish(getattr(messages, name))
 
     # ----------------------------------------------------------------------------------------- service
     def _run(self, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo, num_samples: int,
              compute_grasps: bool) -> tuple[PipelineResult, Header]:
-        depth = conversions.depth_to_metres(depth_msg, self._values["depth_scale"])
-        mask = conversions.mask_to_numpy(mask_msg)
-        intrinsics = conversions.camera_info_to_intrinsics(info_msg)
-        return self.pipeline.run(depth, mask, intrinsics, num_samples, compute_grasps), depth_msg.header
+        pipeline = self.pipeline
+        if pipeline is None:
+            raise InputError("the node is not configured (no model loaded)")
+        return complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"], num_samples,
+                                 compute_grasps)
 
     def _request_input(self, request: SampleCompletions.Request) -> tuple[Image, Image, CameraInfo]:
         if request.depth.height == 0:
@@ -309,10 +410,11 @@ class CompletionNode(Node):
         response.voxel_size = float(result.voxel_size)
         response.known_occupied = conversions.points_to_pointcloud2(result.known_occupied, header)
         response.completions = [conversions.points_to_pointcloud2(c, header) for c in result.completions]
-        poses, scores, widths = self._grasp_fields(result)
+        poses, scores, widths = grasp_fields(result)
         response.grasps = PoseArray(header=header, poses=poses)
         response.grasp_scores, response.grasp_widths = scores, widths
         response.success = True
+        self._health.completed(time.perf_counter() - t0)
         points = sum(len(c) for c in result.completions)
         response.message = (f"{result.num_samples} samples, {points} voxels, {len(poses)} grasps, seed "
                             f"{result.seed}, {(time.perf_counter() - t0) * 1000:.0f} ms")
@@ -323,6 +425,17 @@ class CompletionNode(Node):
         stats = self.stats()
         response.success, response.message = True, json.dumps(stats, sort_keys=True)
         return response
+
+    def _publish_diagnostics(self) -> None:
+        pipeline = self.pipeline
+        model = {} if pipeline is None else {
+            "model": f"{pipeline.completer.model_name} {pipeline.completer.grid_size}^3",
+            "device": self._values["device"], "precision": pipeline.completer.precision}
+        state = "active" if self._active else ("inactive" if pipeline is not None else "unconfigured")
+        status = diagnostic_status(f"{NODE_NAME}: completion", self.get_fully_qualified_name(), state,
+                                   self._health.snapshot(), self.stats(), model, self._configure_error)
+        self._pub_diagnostics.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()),
+                                                      status=[status]))
 
     def stats(self) -> dict[str, int]:
         """Counters, one consistent snapshot.
@@ -356,10 +469,12 @@ def usage() -> str:
     return ("usage: completion_node [--help] [--ros-args -p NAME:=VALUE ... --params-file FILE -r FROM:=TO]\n\n"
             "PSSNet completion node: diverse plausible shape completions of a segmented object from one depth\n"
             "image, and parallel-jaw grasps ranked across them.\n\n"
+            "A lifecycle node: with autostart (default) it configures and activates itself; with\n"
+            "autostart:=false it waits for configure/activate on /pssnet/change_state.\n\n"
             "Node name: pssnet. Subscribes: depth, mask, camera_info (remappable). Serves:\n"
             "/pssnet/sample_completions (pssnet_interfaces/srv/SampleCompletions), /pssnet/get_stats.\n"
             "Publishes (continuous mode): /pssnet/completions, /pssnet/known_occupied, /pssnet/grasps,\n"
-            "/pssnet/grasp_candidates.\n\nParameters:\n" + markdown_table() + "\n")
+            "/pssnet/grasp_candidates, /diagnostics (1 Hz).\n\nParameters:\n" + markdown_table() + "\n")
 
 
 def main(args: Sequence[str] | None = None) -> int:
@@ -386,8 +501,11 @@ def main(args: Sequence[str] | None = None) -> int:
         if shm.removed:
             node.get_logger().info(f"removed {len(shm.removed)} stale Fast DDS shared-memory files of dead "
                                    f"processes ({shm.freed_bytes / 2**20:.1f} MiB): {' '.join(shm.removed)}")
-        node.get_logger().info(f"ready: serving {node.resolve_service_name('~/sample_completions')}, continuous "
-                               f"{'on' if node.get_parameter('continuous').value else 'off'}")
+        if node.get_parameter("autostart").value:
+            node.get_logger().info(f"ready: serving {node.resolve_service_name('~/sample_completions')}, "
+                                   f"continuous {'on' if node.get_parameter('continuous').value else 'off'}")
+        else:
+            node.get_logger().info("unconfigured: waiting for a lifecycle manager (configure, then activate)")
         spin_until_shutdown(executor)
     except StartupError as error:
         print(f"[completion_node] error: {error}", file=sys.stderr)

@@ -21,6 +21,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -85,75 +86,99 @@ def run_client(domain_id: int, samples: int, calls: int, timeout: float):
         return response, latencies or [first]
 
 
-def write_figure(path: Path, view, response) -> None:
-    """observation | completions (4 samples) | best grasps, in gravity-aligned axes (z up)."""
+def write_figure(path: Path, view, response, max_samples: int = 4) -> None:
+    """What the node made of the view, as surfaces one colour per sample, so that the hidden side's spread shows.
+
+    Top row, seen from the camera: the depth image with the object's mask, then each sample (the observed part
+    dark red): they agree where the camera saw. Bottom row, seen from above with the camera at the bottom, so
+    that the hidden side is at the top: every sample's surface coloured by the share of samples that have it,
+    then each sample alone. Last column: the best grasps (gripper outlines, best in green,
+    labelled with rank and score) over the observed surface and the samples, from both sides.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from pssnet_core.geometry import gravity_aligned_rotation
+    from pssnet_core.grasps import GripperConfig, gripper_segments
+    from pssnet_core.surfaces import draw_surface, equal_box, most_different, sample_agreement, surface_of
     from pssnet_ros.conversions import pointcloud2_to_numpy, pose_to_matrix
 
-    axes_cam = gravity_aligned_rotation(view.up)  # columns: horizontal view direction, side, up
+    axes_cam = gravity_aligned_rotation(view.up)  # columns: horizontal view direction, left, up
 
     def level(points: np.ndarray) -> np.ndarray:
-        return points @ axes_cam
+        return np.asarray(points, np.float64) @ axes_cam
 
+    voxel = float(response.voxel_size)
     known = level(pointcloud2_to_numpy(response.known_occupied)[0])
-    samples = [level(pointcloud2_to_numpy(c)[0]) for c in response.completions]
-    shown = samples[:4]
-    fig = plt.figure(figsize=(4.2 * (2 + len(shown)), 4.6))
-    ax = fig.add_subplot(1, 2 + len(shown), 1)
+    every_sample = [level(pointcloud2_to_numpy(c)[0]) for c in response.completions]
+    clouds = [c for c in [known, *every_sample] if len(c)]
+    origin = np.min([c.min(axis=0) for c in clouds], axis=0)  # one lattice for every cloud
+    chosen = most_different(every_sample, max_samples, voxel, origin)
+    samples = [every_sample[i] for i in chosen]
+    known_mesh = surface_of(known, voxel, origin)
+    meshes = [surface_of(c, voxel, origin) for c in samples]
+    union_mesh, agreement = sample_agreement(every_sample, voxel, origin)
+    colours = [plt.get_cmap("tab10")(i) for i in (0, 1, 2, 4, 6, 8, 9)]  # no red: red is what was observed
+    poses = np.array([pose_to_matrix(p) for p in response.grasps.poses[:5]]).reshape(-1, 4, 4)
+    grasp_lines = gripper_segments(poses, np.asarray(response.grasp_widths[:len(poses)]), GripperConfig())
+    grasp_lines = level(grasp_lines.reshape(-1, 3)).reshape(grasp_lines.shape)
+    objects = np.concatenate(clouds)
+    everything = np.concatenate([objects, grasp_lines.reshape(-1, 3)])
+
+    columns = len(samples) + 1
+    fig = plt.figure(figsize=(3.6 * (columns + 1), 7.6))
+    # (elevation, azimuth) in the level axes: the camera looks along +x, so it sees the -x side.
+    # From above with the camera at the bottom of the panel: a hidden handle shows as a protrusion whose
+    # direction reads directly (from straight behind, a handle pointing at the viewer hides in front of the body).
+    from_camera, from_above = (20.0, -160.0), (88.0, 180.0)
+
+    def panel(position: int, title: str, viewpoint: tuple[float, float], frame: np.ndarray) -> Any:
+        ax3d = fig.add_subplot(2, columns + 1, position, projection="3d")
+        ax3d.view_init(*viewpoint)
+        equal_box(ax3d, frame)
+        ax3d.set_title(title, fontsize=9)
+        ax3d.set_axis_off()
+        return ax3d
+
+    ax = fig.add_subplot(2, columns + 1, 1)
     rows, cols = np.nonzero(view.mask)
     pad = max(rows.max() - rows.min(), cols.max() - cols.min()) // 2 + 10
     v0, v1 = max(0, rows.min() - pad), min(view.mask.shape[0], rows.max() + pad)
     u0, u1 = max(0, cols.min() - pad), min(view.mask.shape[1], cols.max() + pad)
-    depth = np.where(view.depth > 0, view.depth, np.nan)[v0:v1, u0:u1]
-    ax.imshow(depth, cmap="viridis")
+    ax.imshow(np.where(view.depth > 0, view.depth, np.nan)[v0:v1, u0:u1], cmap="viridis")
     ax.contour(view.mask[v0:v1, u0:u1] > 0, levels=[0.5], colors="red", linewidths=1.0)
-    ax.set_title("observation: depth + mask (handle hidden)")
+    hidden = {False: "hidden", True: "visible"}.get(view.handle_visible, "absent")
+    ax.set_title(f"depth + mask (handle {hidden})\nbelow: {len(samples)} of {len(every_sample)} samples, the most "
+                 f"different;\ndark red = observed; yellow = in every sample", fontsize=9)
     ax.set_axis_off()
-    lo = np.min([p.min(axis=0) for p in [known, *samples] if len(p)], axis=0)
-    hi = np.max([p.max(axis=0) for p in [known, *samples] if len(p)], axis=0)
-    centre, half = (lo + hi) / 2, (hi - lo).max() / 2 + 0.01
-
-    def frame(ax3d, title: str) -> None:
-        for setter, c in zip((ax3d.set_xlim, ax3d.set_ylim, ax3d.set_zlim), centre, strict=True):
-            setter(c - half, c + half)
-        ax3d.view_init(elev=25, azim=40)  # from behind and above: the hidden side faces the viewer
-        ax3d.set_title(title, fontsize=9)
-        ax3d.set_xticklabels([])
-        ax3d.set_yticklabels([])
-        ax3d.set_zticklabels([])
-
-    for i, points in enumerate(shown):
-        ax3d = fig.add_subplot(1, 2 + len(shown), 2 + i, projection="3d")
-        ax3d.scatter(*points.T, s=3, c="tab:blue", alpha=0.5, depthshade=False)
-        ax3d.scatter(*known.T, s=2, c="tab:red", alpha=0.6, depthshade=False)
-        frame(ax3d, f"sample {i}: {len(points)} voxels (red: observed)")
-    ax3d = fig.add_subplot(1, 2 + len(shown), 2 + len(shown), projection="3d")
-    merged = np.concatenate([s for s in samples if len(s)] or [np.zeros((0, 3))])
-    ax3d.scatter(*merged[::max(1, len(merged) // 6000)].T, s=1, c="lightgray", alpha=0.2, depthshade=False)
-    ax3d.scatter(*known.T, s=2, c="tab:red", depthshade=False)
-    grasps = response.grasps.poses[:5]
-    for rank, pose in enumerate(grasps):
-        matrix = pose_to_matrix(pose)
-        origin = level(matrix[:3, 3][None])[0]
-        approach, closing = matrix[:3, 2] @ axes_cam, matrix[:3, 1] @ axes_cam
-        width = response.grasp_widths[rank] if rank < len(response.grasp_widths) else 0.08
-        tips = [origin + s * 0.5 * width * closing for s in (-1.0, 1.0)]
-        colour = "tab:green" if rank == 0 else "tab:orange"
-        for tip in tips:  # fingers
-            ax3d.plot(*np.stack([tip, tip - 0.04 * approach]).T, c=colour, lw=2)
-        ax3d.plot(*np.stack(tips).T, c=colour, lw=1)
-        palm = origin - 0.04 * approach
-        ax3d.plot(*np.stack([palm, palm - 0.03 * approach]).T, c=colour, lw=2)
-    scores = ", ".join(f"{s:.2f}" for s in response.grasp_scores[:5])
-    frame(ax3d, f"best grasps (green = best; scores {scores})" if grasps else "grasps: none returned")
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.02, top=0.9, wspace=0.05)
+    for k, (i, mesh) in enumerate(zip(chosen, meshes, strict=True)):
+        ax3d = panel(2 + k, f"sample {i}, from the camera", from_camera, objects)
+        draw_surface(ax3d, mesh, colours[k % len(colours)])
+        draw_surface(ax3d, known_mesh, "darkred")
+    ax3d = panel(columns + 2, f"all {len(every_sample)} samples from above:\nshare of samples with each part",
+                 from_above, objects)
+    draw_surface(ax3d, union_mesh, plt.get_cmap("viridis")(agreement)[:, :3])
+    for k, (i, mesh) in enumerate(zip(chosen, meshes, strict=True)):
+        ax3d = panel(columns + 3 + k, f"sample {i}, from above (camera below)", from_above, objects)
+        draw_surface(ax3d, mesh, colours[k % len(colours)])
+        draw_surface(ax3d, known_mesh, "darkred")
+    for position, viewpoint, side in ((columns + 1, from_camera, "from the camera"),
+                                      (2 * (columns + 1), from_above, "from above")):
+        ax3d = panel(position, f"best grasps (green = best), {side}", viewpoint, everything)
+        for mesh in meshes:
+            draw_surface(ax3d, mesh, "lightgray", alpha=0.15)
+        draw_surface(ax3d, known_mesh, "darkred")
+        for rank in range(len(grasp_lines) - 1, -1, -1):  # best drawn last, on top
+            colour = "tab:green" if rank == 0 else "tab:orange"
+            for segment in grasp_lines[rank]:
+                ax3d.plot(*segment.T, color=colour, linewidth=3.0 if rank == 0 else 1.5)
+            ax3d.text(*grasp_lines[rank, 3, 1], f"#{rank + 1} {response.grasp_scores[rank]:.2f}", color=colour,
+                      fontsize=8)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.93, wspace=0.02, hspace=0.12)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 

@@ -7,6 +7,8 @@ is :class:`pssnet_ros.client.RosClient`, the one the demo and the benchmark use.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +19,7 @@ from pssnet_core.inference import DEFAULT_CHECKPOINT
 from pssnet_core.models import build_model, default_config
 from pssnet_core.models.checkpoint import save_checkpoint
 from pssnet_core.shapes import make_shape
-from pssnet_ros.processes import free_domain_id
+from pssnet_ros.processes import RosProcess, free_domain_id, ros_env
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32, "flow_hidden": 32, "flow_couplings": 4}
 
@@ -88,3 +90,15 @@ def node_args(checkpoint: Path, **params) -> list[str]:
             text = repr(value) if isinstance(value, float) else str(value)
         args += ["-p", f"{name}:={text}"]
     return args
+
+
+@contextmanager
+def running_node(args: list[str], domain: int, ready: str, timeout: float = 120.0) -> Iterator[RosProcess]:
+    """A completion_node process started with ``args`` on ``domain``, yielded once its log matches ``ready``;
+    stopped (SIGINT, then harder) on exit."""
+    process = RosProcess.python_module("pssnet_ros.completion_node", args, ros_env(domain), name="completion_node")
+    try:
+        process.wait_for(ready, timeout=timeout)
+        yield process
+    finally:
+        process.stop()

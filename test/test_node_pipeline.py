@@ -76,7 +76,7 @@ def test_real_model_seeds_and_sample_counts(tiny_pipeline, scene):
     b = tiny_pipeline.run(scene.depth, scene.mask, scene.intrinsics, num_samples=2, compute_grasps=False)
     assert b.num_samples == 2
     np.testing.assert_array_equal(a.occupancy[:2], b.occupancy)  # same seed, same first samples
-    tiny_pipeline.config = tiny_pipeline.with_config(seed=-1, seed_base=3)
+    tiny_pipeline.config = tiny_pipeline.with_config(seed=-1)
     c = tiny_pipeline.run(scene.depth, scene.mask, scene.intrinsics, num_samples=2, compute_grasps=False)
     d = tiny_pipeline.run(scene.depth, scene.mask, scene.intrinsics, num_samples=2, compute_grasps=False)
     assert c.seed != d.seed

@@ -20,13 +20,14 @@ from test_node_helpers import (
     node_args,
     node_checkpoint,
     render_mug_scene,
+    running_node,
     stamped_header,
 )
 
 from pssnet_core.geometry import CameraIntrinsics
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy
-from pssnet_ros.processes import RosProcess, ros_env, stale_shm_files
+from pssnet_ros.processes import stale_shm_files
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(1)
@@ -45,14 +46,9 @@ def checkpoint(tmp_path_factory):
 @pytest.fixture(scope="module")
 def node(checkpoint, scene):
     path, _ = checkpoint
-    process = RosProcess.python_module(
-        "pssnet_ros.completion_node", node_args(path, up_vector=scene.up, num_samples=8, threads=1),
-        ros_env(DOMAIN), name="completion_node")
-    try:
-        process.wait_for(r"ready: serving /pssnet/sample_completions", timeout=120)
+    with running_node(node_args(path, up_vector=scene.up, num_samples=8, threads=1), DOMAIN,
+                      r"ready: serving /pssnet/sample_completions") as process:
         yield process
-    finally:
-        process.stop()
 
 
 @pytest.fixture(scope="module")
@@ -257,9 +253,9 @@ def set_parameter(ros, name, value):
 
 def test_invalid_parameters_are_rejected_with_a_reason(ros, service, scene):
     result = set_parameter(ros, "num_samples", 500)
-    assert not result.successful and result.reason == "num_samples (500) must not exceed max_num_samples (100)"
+    assert not result.successful and result.reason == "num_samples must be in [1, max_num_samples=100], got 500"
     result = set_parameter(ros, "min_depth", 9.0)
-    assert not result.successful and "min_depth (9.0) must be smaller than max_depth (5.0)" in result.reason
+    assert not result.successful and "need 0 <= min_depth < max_depth, got 9.0 and 5.0" in result.reason
     result = set_parameter(ros, "max_rate_hz", 0.0)
     assert not result.successful and "out of range" in result.reason
     assert set_parameter(ros, "num_samples", 2).successful

@@ -69,11 +69,11 @@ def test_invalid_parameters_stop_startup_with_the_reason(tmp_path, context):
         ({"model_path": str(foreign)}, r"^cannot load the completion model: \S+foreign\.pt is not a PSSNet-ROS "
                                        r"checkpoint"),
         ({"sync_tolerance": "fast"}, r"^invalid parameter sync_tolerance: .*expecting type 'DOUBLE'"),
-        ({"num_samples": 200}, r"^invalid parameters: num_samples \(200\) must not exceed max_num_samples \(100\)$"),
+        ({"num_samples": 200}, r"^invalid parameters: num_samples must be in \[1, max_num_samples=100\], got 200$"),
         ({"device": "tpu"}, r"^invalid parameters: device must be one of cpu, cuda, got 'tpu'$"),
         ({"up_vector": [0.0, 0.0, 0.0]}, r"^invalid parameters: up_vector must be 3 finite numbers, not all zero"),
         ({"min_depth": 3.0, "max_depth": 2.0},
-         r"^invalid parameters: min_depth \(3.0\) must be smaller than max_depth"),
+         r"^invalid parameters: need 0 <= min_depth < max_depth, got 3.0 and 2.0$"),
         ({"front_margin": 16.0}, r"^invalid parameters for this model: grid margins must be in \[0, size/2\) voxels$"),
     ]
     for changes, pattern in cases:

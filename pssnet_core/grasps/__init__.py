@@ -72,7 +72,7 @@ from pssnet_core.grasps.candidates import approach_orientations, generate_candid
 from pssnet_core.grasps.config import GraspConfig, GraspError, GripperConfig
 from pssnet_core.grasps.inputs import estimate_support_height
 from pssnet_core.grasps.planning import plan_grasps, single_completion_choice
-from pssnet_core.grasps.plotting import gripper_lines, plot_grasps
+from pssnet_core.grasps.plotting import gripper_lines, gripper_segments, plot_grasps
 from pssnet_core.grasps.results import (
     KIND_NAMES,
     GraspCandidates,
@@ -96,6 +96,7 @@ __all__ = [
     "estimate_support_height",
     "generate_candidates",
     "gripper_lines",
+    "gripper_segments",
     "matrix_to_position_quaternion",
     "plan_grasps",
     "plot_grasps",

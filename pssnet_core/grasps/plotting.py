@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pssnet_core.geometry import GridPose
-from pssnet_core.grasps.config import GraspConfig
+from pssnet_core.grasps.config import GraspConfig, GripperConfig
 from pssnet_core.grasps.inputs import check_occupancy
 from pssnet_core.grasps.results import GraspSet
 
@@ -18,18 +18,27 @@ if TYPE_CHECKING:
 
 def gripper_lines(grasps: GraspSet, config: GraspConfig | None = None) -> np.ndarray:
     """(K, 4, 2, 3) camera-frame line segments drawing each gripper: two fingers, the palm bar, the stem."""
-    config = config or GraspConfig()
-    g = config.gripper
-    lines = np.zeros((len(grasps), 4, 2, 3))
-    for k in range(len(grasps)):
-        half = grasps.widths[k] / 2
+    return gripper_segments(grasps.poses, grasps.widths, (config or GraspConfig()).gripper)
+
+
+def gripper_segments(poses: np.ndarray, widths: np.ndarray, gripper: GripperConfig) -> np.ndarray:
+    """(K, 4, 2, 3) line segments of grippers at ``poses`` (K, 4, 4) opened to ``widths`` (K,), in the poses' frame.
+
+    The segments: the two fingers (fingertip to palm), the palm bar between them, and a stem behind the palm
+    as long as the palm is deep (at least 3 cm, so that the approach direction reads in a small figure).
+    """
+    poses, widths = np.asarray(poses, np.float64), np.asarray(widths, np.float64)
+    lines = np.zeros((len(widths), 4, 2, 3))
+    reach = gripper.finger_length
+    for k in range(len(widths)):
+        half = widths[k] / 2
         local = np.array([
-            [[0, -half, 0], [0, -half, -g.finger_length]],
-            [[0, half, 0], [0, half, -g.finger_length]],
-            [[0, -half, -g.finger_length], [0, half, -g.finger_length]],
-            [[0, 0, -g.finger_length], [0, 0, -g.finger_length - max(g.palm_depth, 0.03)]],
+            [[0, -half, 0], [0, -half, -reach]],
+            [[0, half, 0], [0, half, -reach]],
+            [[0, -half, -reach], [0, half, -reach]],
+            [[0, 0, -reach], [0, 0, -reach - max(gripper.palm_depth, 0.03)]],
         ])
-        lines[k] = local @ grasps.poses[k, :3, :3].T + grasps.poses[k, :3, 3]
+        lines[k] = local @ poses[k, :3, :3].T + poses[k, :3, 3]
     return lines
 
 

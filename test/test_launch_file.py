@@ -1,0 +1,84 @@
+"""launch/completion.launch.py as far as this machine can check it: the ROS 2 `launch` packages have no wheels.
+
+The file runs against recording stand-ins for launch / launch_ros (each action and substitution keeps its
+arguments), so the test sees exactly what `ros2 launch` would be given: the executable and node name, the
+parameter file, the remappings and the launch arguments, and checks them against the node's own interface.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import types
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pssnet_ros.completion_io import STREAMS
+from pssnet_ros.params import SPECS, check_values
+
+ROOT = Path(__file__).resolve().parents[1]
+LAUNCH_FILE = ROOT / "launch" / "completion.launch.py"
+
+
+class Recorded:
+    """Stands in for any launch class: remembers its positional and keyword arguments."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.args, self.kwargs = args, kwargs
+
+
+def stand_in_modules() -> dict[str, types.ModuleType]:
+    names = {"launch": ["LaunchDescription"], "launch.actions": ["DeclareLaunchArgument"],
+             "launch.substitutions": ["LaunchConfiguration", "PathJoinSubstitution"],
+             "launch_ros.actions": ["Node"], "launch_ros.parameter_descriptions": ["ParameterValue"],
+             "launch_ros.substitutions": ["FindPackageShare"], "launch_ros": []}
+    modules = {}
+    for module, classes in names.items():
+        modules[module] = types.ModuleType(module)
+        for name in classes:
+            setattr(modules[module], name, type(name, (Recorded,), {}))
+    return modules
+
+
+@pytest.fixture
+def description(monkeypatch):
+    for name, module in stand_in_modules().items():
+        monkeypatch.setitem(sys.modules, name, module)
+    spec = importlib.util.spec_from_file_location("completion_launch", LAUNCH_FILE)
+    launch_file = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(launch_file)
+    return launch_file.generate_launch_description()
+
+
+def test_the_node_its_parameters_and_remappings(description):
+    entities = description.args[0]
+    nodes = [e for e in entities if type(e).__name__ == "Node"]
+    assert len(nodes) == 1
+    node = nodes[0].kwargs
+    assert node["package"] == "pssnet_ros" and node["name"] == "pssnet"
+    assert f"{node['executable']} = pssnet_ros.completion_node:main" in (ROOT / "setup.py").read_text()
+    # Every input the node subscribes to is remapped by a launch argument of the same name, and nothing else.
+    remapped = {source: target.args[0] for source, target in node["remappings"]}
+    assert set(remapped) == set(STREAMS) and all(remapped[s] == s for s in STREAMS)
+    arguments = {e.args[0]: e.kwargs for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
+    assert set(arguments) == {"namespace", "params_file", "autostart", *STREAMS}
+    assert all(arguments[s]["default_value"] == s for s in STREAMS)  # defaults: the node's own names
+    assert node["namespace"].args[0] == "namespace"
+    # The parameter file: the installed config/completion_node.yaml, then autostart from its argument as a bool.
+    params_file, overrides = node["parameters"]
+    assert params_file.args[0] == "params_file"
+    share = arguments["params_file"]["default_value"].args[0]
+    assert share[0].args[0] == "pssnet_ros" and share[1:] == ["config", "completion_node.yaml"]
+    assert set(overrides) == {"autostart"} and "autostart" in SPECS
+    assert overrides["autostart"].args[0].args[0] == "autostart" and overrides["autostart"].kwargs["value_type"] is bool
+    assert arguments["autostart"]["default_value"] == "true"
+
+
+def test_the_parameter_file_it_installs_is_valid_for_the_node():
+    values = yaml.safe_load((ROOT / "config" / "completion_node.yaml").read_text())["/**"]["ros__parameters"]
+    assert check_values(values) is None
+    setup = (ROOT / "setup.py").read_text()
+    assert '(f"share/{PACKAGE}/launch", glob("launch/*.launch.py"))' in setup
+    assert '(f"share/{PACKAGE}/config", glob("config/*"))' in setup

@@ -1,0 +1,175 @@
+"""The managed node over real DDS: lifecycle transitions through the standard lifecycle_msgs services, a failed
+configure that can be retried, and /diagnostics in each state.
+
+One node process (autostart:=false, a missing model at first) is driven through the states in order, as a
+lifecycle manager (Nav2's, launch_ros's) would drive it.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from lifecycle_msgs.msg import State, Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from pssnet_interfaces.srv import SampleCompletions
+from test_node_helpers import (
+    domain_for,
+    make_request,
+    node_args,
+    render_mug_scene,
+    running_node,
+    stamped_header,
+    tiny_checkpoint,
+)
+
+from pssnet_ros.client import NODE, SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
+
+pytestmark = pytest.mark.ros
+DOMAIN = domain_for(11)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    return tiny_checkpoint(tmp_path_factory.mktemp("lifecycle") / "tiny32.pt")
+
+
+@pytest.fixture(scope="module")
+def node(tmp_path_factory):
+    missing = tmp_path_factory.mktemp("missing") / "absent.pt"
+    with running_node(node_args(missing, autostart=False, threads=1, num_samples=4), DOMAIN,
+                      r"unconfigured: waiting for a lifecycle manager") as process:
+        yield process
+
+
+@pytest.fixture(scope="module")
+def ros(node):
+    client = RosClient(DOMAIN)
+    yield client
+    client.close()
+
+
+class DiagnosticsListener:
+    """Keeps the newest /diagnostics status of the node."""
+
+    def __init__(self, ros: RosClient) -> None:
+        self._lock = threading.Lock()
+        self.latest: DiagnosticStatus | None = None
+        ros.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_message, 10)
+
+    def _on_message(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.hardware_id == NODE:
+                with self._lock:
+                    self.latest = status
+
+    def wait_for_state(self, state: str, timeout: float = 30.0) -> dict[str, str]:
+        def matching() -> dict[str, str] | None:
+            with self._lock:
+                status = self.latest
+            if status is None:
+                return None
+            values = {kv.key: kv.value for kv in status.values}
+            return {**values, "level": status.level, "message": status.message} if values["state"] == state else None
+
+        return wait_until(matching, timeout, f"/diagnostics reporting state {state!r}")
+
+
+def get_state(ros: RosClient) -> str:
+    return ros.call(ros.service(GetState, f"{NODE}/get_state"), GetState.Request()).current_state.label
+
+
+def change_state(ros: RosClient, transition: int, timeout: float = 60.0) -> bool:
+    request = ChangeState.Request(transition=Transition(id=transition))
+    return bool(ros.call(ros.service(ChangeState, f"{NODE}/change_state"), request, timeout).success)
+
+
+def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoint):
+    diagnostics = DiagnosticsListener(ros)
+    # A client from the start, so that by the time it matters it has discovered whatever server there is
+    # (the graph lists services that only have clients too, so server_is_ready is the test).
+    service = ros.node.create_client(SampleCompletions, SAMPLE_SERVICE)
+    assert get_state(ros) == "unconfigured"
+    seen = diagnostics.wait_for_state("unconfigured")
+    assert seen["level"] == DiagnosticStatus.WARN
+
+    # A missing model: configure fails, the node stays unconfigured and says why (log and /diagnostics).
+    mark = len(node.lines())
+    assert not change_state(ros, Transition.TRANSITION_CONFIGURE)
+    assert get_state(ros) == "unconfigured"
+    assert any("configure failed" in line and "no checkpoint file" in line for line in node.lines(mark))
+    failed = wait_until(lambda: (d := diagnostics.wait_for_state("unconfigured"))["level"]
+                        == DiagnosticStatus.ERROR and d, 30, "an ERROR status")
+    assert "no checkpoint file" in failed["message"]
+
+    # Fix the parameter (allowed while unconfigured) and retry.
+    assert ros.set_parameters(model_path=str(checkpoint))[0].successful
+    assert change_state(ros, Transition.TRANSITION_CONFIGURE)
+    assert get_state(ros) == "inactive"
+    refused = ros.set_parameters(model_path="/elsewhere.pt")[0]
+    assert not refused.successful and "only change while the node is unconfigured" in refused.reason
+    assert ros.set_parameters(num_samples=3)[0].successful  # ordinary parameters change in any state
+    assert not service.service_is_ready()
+
+    assert change_state(ros, Transition.TRANSITION_ACTIVATE)
+    assert get_state(ros) == "active"
+    scene = render_mug_scene(seed=3)
+    assert service.wait_for_service(timeout_sec=30)
+    response = ros.call(service, make_request(scene, stamped_header(5)), timeout=120)
+    assert response.success, response.message
+    assert len(response.completions) == 3
+    active = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "1" and d, 30,
+                        "diagnostics counting the call")
+    assert active["level"] == DiagnosticStatus.OK
+    assert active["model"] == "pssnet 32^3" and active["device"] == "cpu"
+    assert float(active["latency p50 (ms, last 10 s)"]) > 0
+
+    assert change_state(ros, Transition.TRANSITION_DEACTIVATE)
+    assert get_state(ros) == "inactive"
+    wait_until(lambda: not service.service_is_ready(), 30, "the sample service gone after deactivate")
+    assert change_state(ros, Transition.TRANSITION_CLEANUP)
+    assert get_state(ros) == "unconfigured"
+    assert ros.set_parameters(model_path=str(checkpoint))[0].successful  # unconfigured again: allowed
+    # A transition the state machine does not have from here is refused, the state unchanged, the node alive
+    # (plain rclpy lets this request end the node's spin).
+    assert not change_state(ros, Transition.TRANSITION_ACTIVATE)
+    assert get_state(ros) == "unconfigured"
+    assert not change_state(ros, Transition.TRANSITION_DEACTIVATE)
+    assert node.running and get_state(ros) == "unconfigured"
+    assert change_state(ros, Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
+    assert get_state(ros) == "finalized"
+    assert State.PRIMARY_STATE_FINALIZED == 4
+    assert node.running  # finalized is a state, not an exit: the process waits for SIGINT
+    assert node.stop() == 0
+
+
+def test_health_window_rate_and_percentiles():
+    now = [100.0]
+    health = CompletionHealth(window_s=10.0, clock=lambda: now[0])
+    empty = health.snapshot()
+    assert empty.completions == 0 and empty.rate_hz == 0.0 and empty.latency_p50_ms != empty.latency_p50_ms  # NaN
+    for latency in (0.010, 0.020, 0.030, 0.040):
+        health.completed(latency)
+        now[0] += 1.0
+    snap = health.snapshot()
+    assert snap.completions == 4 and snap.rate_hz == pytest.approx(0.4)
+    assert snap.latency_p50_ms == pytest.approx(25.0) and snap.latency_p95_ms == pytest.approx(38.5)
+    now[0] += 6.5  # 110.5 s: the first completion (at 100 s) is now more than 10 s old
+    assert health.snapshot().completions == 3
+    with pytest.raises(ValueError, match="window_s"):
+        CompletionHealth(window_s=0.0)
+
+
+def test_diagnostic_status_levels():
+    snap = CompletionHealth().snapshot()
+    counters = {"service_calls": 2, "sets_dropped_stale": 1, "latest_set_stamp_ns": 5}
+    ok = diagnostic_status("pssnet: completion", "/pssnet", "active", snap, counters, {"model": "pssnet 32^3"})
+    assert ok.level == DiagnosticStatus.OK
+    values = {kv.key: kv.value for kv in ok.values}
+    assert values["sets dropped stale"] == "1" and values["model"] == "pssnet 32^3"
+    assert "latest set stamp ns" not in values
+    assert diagnostic_status("n", "/pssnet", "inactive", snap, counters, {}).level == DiagnosticStatus.WARN
+    error = diagnostic_status("n", "/pssnet", "unconfigured", snap, counters, {}, "cannot load the model")
+    assert error.level == DiagnosticStatus.ERROR and "cannot load the model" in error.message
