@@ -97,6 +97,9 @@ class CompletionModel(nn.Module):
         super().__init__()
         self.config = config
         self.grid_size = config.grid_size
+        # Data-parallel wrappers of the sub-networks while a distributed run trains (see :meth:`wrapped`). A
+        # plain dict, so neither state_dict() nor .to() sees them: checkpoints stay those of the bare model.
+        self._wrappers: dict[str, nn.Module] = {}
 
     # ----------------------------------------------------------------------------------------- helpers
     @property
@@ -130,6 +133,30 @@ class CompletionModel(nn.Module):
         for name, p in self.named_parameters():
             if not name.startswith(prefixes):
                 yield p
+
+    # ------------------------------------------------------------------------------- data parallelism
+    def networks(self) -> dict[str, nn.Module]:
+        """The sub-networks trained by gradient, by attribute name (encoder, decoder, flow, discriminator...).
+
+        A distributed run wraps each in its own DistributedDataParallel rather than the whole model: every
+        optimiser step of a training step (flow, VAE, discriminator, generator) then reduces only the gradients
+        of the networks its own backward pass reached.
+        """
+        return {name: m for name, m in self.named_children() if any(p.requires_grad for p in m.parameters())}
+
+    def set_wrappers(self, wrappers: dict[str, nn.Module]) -> None:
+        """Routes the training forward passes of ``networks()`` through these wrappers; ``{}`` removes them."""
+        if unknown := set(wrappers) - set(self.networks()):
+            raise ValueError(f"no sub-networks named {sorted(unknown)}; known: {sorted(self.networks())}")
+        self._wrappers = dict(wrappers)
+
+    def wrapped(self, name: str) -> nn.Module:
+        """Sub-network ``name`` as a training step calls it: its data-parallel wrapper in a distributed run.
+
+        Only training steps go through the wrappers: a wrapper's forward with gradients on prepares a gradient
+        reduction that every rank must then join, and inference or validation runs on one rank.
+        """
+        return self._wrappers[name] if name in self._wrappers else getattr(self, name)
 
     # -------------------------------------------------------------------------------------- interface
     def make_optimizers(self, lr: float) -> dict[str, torch.optim.Optimizer]:

@@ -27,6 +27,13 @@ LOG_2PI = math.log(2.0 * math.pi)
 LOGVAR_RANGE = (-12.0, 6.0)
 
 
+def mixture_nll(log_weights: torch.Tensor, means: torch.Tensor, logvars: torch.Tensor,
+                code: torch.Tensor) -> torch.Tensor:
+    """-log p(code) per row, (B,), under the mixtures ``BoxMixtureHead.forward`` returns."""
+    log_normal = -0.5 * ((code[:, None] - means).pow(2) * torch.exp(-logvars) + logvars + LOG_2PI).sum(-1)
+    return -torch.logsumexp(log_weights + log_normal, dim=-1)
+
+
 class BoxMixtureHead(nn.Module):
     """``features (B, F) -> (log_weights (B, K), means (B, K, D), logvars (B, K, D))``.
 
@@ -59,9 +66,7 @@ class BoxMixtureHead(nn.Module):
 
     def nll(self, features: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
         """-log p(code | features) per row, (B,)."""
-        log_weights, means, logvars = self(features)
-        log_normal = -0.5 * ((code[:, None] - means).pow(2) * torch.exp(-logvars) + logvars + LOG_2PI).sum(-1)
-        return -torch.logsumexp(log_weights + log_normal, dim=-1)
+        return mixture_nll(*self(features), code)
 
     @torch.no_grad()
     def sample(self, features: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,

@@ -19,6 +19,11 @@ from torch import nn
 LOG_2PI = math.log(2.0 * math.pi)
 
 
+def log_prob_from(z: torch.Tensor, log_det: torch.Tensor) -> torch.Tensor:
+    """log p(x) from the flow's ``forward(x) = (z, log_det)``, standard-normal base: (B,)."""
+    return -0.5 * (z.pow(2).sum(-1) + z.shape[-1] * LOG_2PI) + log_det
+
+
 class AffineCoupling(nn.Module):
     """z_b = x_b * exp(s(x_a)) + t(x_a) on the dims where ``mask`` is 0; dims where it is 1 pass through."""
 
@@ -140,8 +145,7 @@ class RealNVP(nn.Module):
 
     def log_prob(self, x: torch.Tensor) -> torch.Tensor:
         """log p(x) under the flow with a standard-normal base, shape (B,)."""
-        z, log_det = self(x)
-        return -0.5 * (z.pow(2).sum(-1) + self.dim * LOG_2PI) + log_det
+        return log_prob_from(*self(x))
 
     @torch.no_grad()
     def sample(self, num: int, generator: torch.Generator | None = None) -> torch.Tensor:

@@ -46,7 +46,7 @@ class RecGAN(CompletionModel):
         if self.uses_channels_last():
             y = y.contiguous(memory_format=torch.channels_last_3d)
         with ctx.autocast():
-            logits = self.generator(x)
+            logits = self.wrapped("generator")(x)
         fake = torch.sigmoid(logits.float())
         return _gan_update(self, optimizers, ctx, logits, y, torch.cat([x, fake], 1), torch.cat([x, y], 1),
                            extra_loss=None, extra_name="", pos_weight=self.config.bce_alpha,

@@ -41,9 +41,9 @@ from pssnet_core.models.base import (
     check_num_samples,
     fp32_region,
 )
-from pssnet_core.models.box_mixture import BoxMixtureHead
+from pssnet_core.models.box_mixture import BoxMixtureHead, mixture_nll
 from pssnet_core.models.config import PSSNetConfig, VAEConfig, VAEGANConfig
-from pssnet_core.models.flow import LOG_2PI, RealNVP
+from pssnet_core.models.flow import LOG_2PI, RealNVP, log_prob_from
 from pssnet_core.models.networks import Decoder3D, Discriminator3D, Encoder3D
 
 
@@ -68,7 +68,11 @@ class VAE(CompletionModel):
 
     def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(mu, logvar), each (B, latent_dim), in fp32."""
-        mu, logvar = self.encoder(x).float().chunk(2, dim=1)
+        return self._posterior(self.encoder(x))
+
+    @staticmethod
+    def _posterior(encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mu, logvar = encoded.float().chunk(2, dim=1)
         # Clamp: a runaway log-variance early in training would give inf/NaN in exp().
         return mu, logvar.clamp(-30.0, 20.0)
 
@@ -79,7 +83,7 @@ class VAE(CompletionModel):
     def _vae_forward(self, x: torch.Tensor, ctx: StepContext
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         with ctx.autocast():
-            mu, logvar = self.encode(x)
+            mu, logvar = self._posterior(self.wrapped("encoder")(x))
         eps = torch.randn_like(mu)
         z = mu + torch.exp(0.5 * logvar) * eps
         return z, mu, logvar, eps
@@ -89,7 +93,7 @@ class VAE(CompletionModel):
         x, y = self.check_input(batch["input"]), batch["target"].to(ctx.device)
         z, mu, logvar, _ = self._vae_forward(x, ctx)
         with ctx.autocast():
-            logits = self.decode(z)
+            logits = self.wrapped("decoder")(z)
         rec = bce_sum(logits, y)
         kl = single_sample_kl(z, mu, logvar)
         loss = rec + self.config.kl_weight * kl
@@ -144,7 +148,7 @@ class PSSNet(VAE):
         """-log q(code | view) of box codes under the box posterior, (B,): L_flow per view."""
         k = self.box_dim
         if self.box_head is not None:
-            return self.box_head.nll(torch.cat([mu, logvar], 1), code)
+            return mixture_nll(*self.wrapped("box_head")(torch.cat([mu, logvar], 1)), code)
         return (0.5 * ((code - mu[:, :k]).pow(2) * torch.exp(-logvar[:, :k]) + logvar[:, :k] + LOG_2PI)).sum(1)
 
     def box_spread(self, mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
@@ -177,7 +181,7 @@ class PSSNet(VAE):
 
     def flow_nll(self, box: torch.Tensor) -> torch.Tensor:
         """Mean negative log-likelihood of normalised boxes under the flow (nats per box)."""
-        return -self.flow.log_prob(box).mean()
+        return -log_prob_from(*self.wrapped("flow")(box)).mean()
 
     def embed_box(self, box_n: torch.Tensor) -> torch.Tensor:
         """flow(box) with running batch-norm statistics, no gradient: the decoder's box code."""
@@ -232,7 +236,7 @@ class PSSNet(VAE):
         k = self.box_dim
         z_dec = torch.cat([z_box, z[:, k:]], dim=1)  # box replacement
         with ctx.autocast():
-            logits = self.decode(z_dec)
+            logits = self.wrapped("decoder")(z_dec)
         rec = bce_sum(logits, y)
         kl = single_sample_kl(z[:, k:], mu[:, k:], logvar[:, k:])
         l_flow = self.box_nll(mu, logvar, z_box).mean()
@@ -273,7 +277,7 @@ class VAEGAN(VAE):
             y = y.contiguous(memory_format=torch.channels_last_3d)
         z, mu, logvar, _ = self._vae_forward(x, ctx)
         with ctx.autocast():
-            logits = self.decode(z)
+            logits = self.wrapped("decoder")(z)
         fake = torch.sigmoid(logits.float())
         return _gan_update(self, optimizers, ctx, logits, y, fake, y, extra_loss=self.config.kl_weight
                            * single_sample_kl(z, mu, logvar), extra_name="kl", pos_weight=None,
@@ -284,18 +288,24 @@ def _gan_update(model: CompletionModel, optimizers: dict[str, torch.optim.Optimi
                 logits: torch.Tensor, target: torch.Tensor, fake_disc_in: torch.Tensor,
                 real_disc_in: torch.Tensor, extra_loss: torch.Tensor | None, extra_name: str,
                 pos_weight: float | None, adv_weight: float) -> dict[str, float]:
-    """Discriminator step (real vs detached fake), then generator step (reconstruction + adversarial)."""
+    """Discriminator step (real vs detached fake), then generator step (reconstruction + adversarial).
+
+    Real and fake go through the discriminator as one batch: the same numbers as two passes (it has no batch
+    norm), and one forward per backward, which a data-parallel wrapper needs.
+    """
     disc: nn.Module = model.discriminator  # type: ignore[assignment]
     bce = nn.functional.binary_cross_entropy_with_logits
     with ctx.autocast():
-        d_real = disc(real_disc_in).float()
-        d_fake = disc(fake_disc_in.detach()).float()
+        d_real, d_fake = model.wrapped("discriminator")(torch.cat([real_disc_in, fake_disc_in.detach()])).float() \
+            .split([len(real_disc_in), len(fake_disc_in)])
     loss_d = bce(d_real, torch.ones_like(d_real)) + bce(d_fake, torch.zeros_like(d_fake))
     optimizers["disc"].zero_grad(set_to_none=True)
     loss_d.backward()
     optimizers["disc"].step()
 
-    disc.requires_grad_(False)  # the generator step needs gradients through D, not into it
+    # The generator step needs gradients through D, not into it: the bare D, whose wrapper (if any) would wait
+    # for gradients of its own parameters.
+    disc.requires_grad_(False)
     try:
         with ctx.autocast():
             d_gen = disc(fake_disc_in).float()

@@ -10,6 +10,7 @@ from pssnet_core.data.store import DatasetError, DatasetReader
 from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, read_checkpoint
 from pssnet_core.models.config import ConfigError
 from pssnet_core.models.registry import model_names
+from pssnet_core.training.distributed import DistributedError
 from pssnet_core.training.trainer import BEST_METRICS, TrainConfig, Trainer, TrainingError
 
 
@@ -18,7 +19,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "train", help="train a completion model (pssnet, vae, vae_gan, recgan) on a dataset directory",
         description="Trains a model on a dataset written by `pssnet dataset build`; writes last.pt (resumable), "
-                    "best.pt, CSV logs and loss_curves.png to --out.")
+                    "best.pt, CSV logs and loss_curves.png to --out. Data parallel across processes and machines "
+                    "under torchrun: `torchrun --nproc-per-node K -m pssnet_core train ...` (gloo on CPU, NCCL "
+                    "on GPUs; rank 0 writes --out).")
     p.add_argument("--model", required=True, choices=model_names())
     p.add_argument("--data", required=True,
                    help="training dataset directory; several joined by commas are read as one (e.g. mugs,ycb)")
@@ -28,9 +31,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-minutes", type=float, default=None, help="wall-clock budget of this invocation")
     p.add_argument("--max-steps", type=int, default=None,
                    help="optimiser-step budget of the run (the fair budget on a shared machine)")
-    p.add_argument("--batch-size", type=int, default=16, help="paper: 16")
-    p.add_argument("--lr", type=float, default=1e-3, help="main Adam learning rate (paper: 1e-3)")
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--batch-size", type=int, default=16,
+                   help="views per step and rank (paper: 16); under torchrun a step trains on ranks x this")
+    p.add_argument("--lr", type=float, default=1e-3,
+                   help="main Adam learning rate (paper: 1e-3), for the mean loss of the whole step's batch; not "
+                        "scaled with the number of ranks")
+    p.add_argument("--device", default="cpu", help="cpu or cuda (under torchrun each rank takes cuda:LOCAL_RANK)")
     p.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
                    help="auto: bf16 autocast where the hardware has native bf16 (AVX512-BF16/AMX, CUDA), else fp32")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -160,15 +166,19 @@ def _train(args: argparse.Namespace) -> int:
             summary = Trainer(cfg).fit()
         finally:
             signal.signal(signal.SIGTERM, previous)
-    except (TrainingError, DatasetError, ConfigError, CheckpointError) as error:
+    except (TrainingError, DatasetError, ConfigError, CheckpointError, DistributedError) as error:
         print(f"pssnet train: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
+    if summary["rank"]:
+        return 0  # rank 0 reports for the run
     val = summary["last_validation"]
     print(f"done: {summary['steps']} steps, {summary['elapsed_s'] / 60:.1f} min ({summary['stopped_by']}), "
           f"{summary['precision']} on {summary['device']}; last validation: bce {val['val_bce']:.4f}, "
-          f"IoU {val['val_iou']:.3f}, best-acc {val['val_best_acc_mm']:.2f} mm; checkpoints in {args.out}")
+          f"IoU {val['val_iou']:.3f}, best-acc {val['val_best_acc_mm']:.2f} mm; checkpoints in {args.out}"
+          + (f" ({summary['world_size']} ranks, {summary['global_batch']} views per step)"
+             if summary["world_size"] > 1 else ""))
     return 0
 
 

@@ -2,7 +2,8 @@
 
 Output directory::
 
-    last.pt            full state (weights, optimisers, RNG, position in the epoch): ``--resume`` continues it
+    last.pt            full state (weights, optimisers, RNG, position in the epoch): ``--resume`` continues it,
+                       also with another number of ranks (nothing in it depends on the world size)
     best.pt            weights of the best validation ``best_metric`` so far (no optimiser state)
     train_log.csv      averaged loss terms every ``log_every`` steps
     val_log.csv        validation: val_bce (mean per-voxel BCE of the posterior-mean completion), val_iou
@@ -36,6 +37,8 @@ from pssnet_core.models.base import CompletionModel, StepContext, fast_dtype
 from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
 from pssnet_core.models.config import ModelConfig, config_from_dict
 from pssnet_core.models.registry import default_config, get_model_class
+from pssnet_core.training import distributed
+from pssnet_core.training.distributed import DistributedRun
 from pssnet_core.training.logs import TRAIN_LOG, VAL_LOG, CsvLog, plot_curves, truncate_after_step
 
 BEST_METRICS = {"val_bce": min, "val_iou": max, "val_best_acc_mm": min}
@@ -58,9 +61,10 @@ class TrainConfig:
         max_minutes: wall-clock budget (training + validation); None = no limit.
         max_steps: optimiser-step budget of the whole run (counted across --resume); None = no limit. The fair
             budget when runs share a loaded machine, where minutes buy different numbers of steps.
-        batch_size: samples per step (paper: 16).
-        lr: learning rate of the main optimiser (paper: Adam 1e-3).
-        device: "cpu" or "cuda" (or "cuda:1").
+        batch_size: samples per step and rank (paper: 16); a distributed step trains on world size x this.
+        lr: learning rate of the main optimiser (paper: Adam 1e-3) for the mean loss of the step's whole batch
+            (all ranks: DDP averages their gradients); not scaled with the number of ranks.
+        device: "cpu" or "cuda" (or "cuda:1"; under torchrun "cuda", and each rank takes cuda:LOCAL_RANK).
         precision: "auto" (bf16 autocast where the hardware runs it natively, else fp32), "fp32", "bf16".
         threads: torch CPU threads (None: torch's default).
         seed: seeds weights, noise and shuffling.
@@ -272,29 +276,63 @@ class Trainer:
         get_model_class(self.cfg.model)  # clear error for an unknown name
         return default_config(self.cfg.model, **overrides)
 
-    def _box_source(self) -> Callable[[int], Iterator[torch.Tensor]]:
+    def _box_source(self, run: DistributedRun) -> Callable[[int], Iterator[torch.Tensor]]:
         reader, seed = self.train_reader, self.cfg.seed
 
         def boxes(batch_size: int) -> Iterator[torch.Tensor]:
-            batch_size = min(batch_size, len(reader))
+            available = distributed.min_rank_samples(reader, run.world_size) if run.enabled else len(reader)
+            batch_size = min(batch_size, available)
             epoch = 0
             while True:
-                for batch in reader.iter_batches(batch_size, shuffle=True, seed=seed + 7919 * (epoch + 1),
-                                                 drop_last=True, keys=("box",)):
+                for batch in self._batches(run, batch_size, seed + 7919 * (epoch + 1), True, ("box",)):
                     yield torch.from_numpy(np.asarray(batch["box"], dtype=np.float32))
                 epoch += 1
 
         return boxes
 
+    def _batches(self, run: DistributedRun, batch_size: int, seed: int, drop_last: bool,
+                 keys: tuple[str, ...]) -> Iterator[dict[str, np.ndarray]]:
+        """One epoch of this rank's batches: the whole shuffled stream for one process, else its shards."""
+        if not run.enabled:
+            return self.train_reader.iter_batches(batch_size, shuffle=True, seed=seed, drop_last=drop_last,
+                                                  keys=keys)
+        return distributed.rank_batches(self.train_reader, batch_size, seed, run.rank, run.world_size, keys)
+
     # -------------------------------------------------------------------------------------------- run
     def fit(self) -> dict[str, Any]:
-        """Trains; returns the summary also written to ``summary.json``."""
-        cfg, ctx = self.cfg, self.ctx
+        """Trains; returns the summary also written to ``summary.json``.
+
+        Under torchrun (WORLD_SIZE > 1) this process is one rank of a data-parallel run
+        (:mod:`pssnet_core.training.distributed`); only rank 0 writes to ``out``.
+        """
+        with distributed.session(self.cfg.device) as run:
+            if not run.enabled:
+                return self._fit(run, None)
+            self.ctx = resolve_context(str(run.device), self.cfg.precision)
+            with distributed.StopFlag() as stop:
+                return self._fit(run, stop)
+
+    def _fit(self, run: DistributedRun, stop: distributed.StopFlag | None) -> dict[str, Any]:
+        cfg, ctx, main = self.cfg, self.ctx, run.is_main
+
+        def say(message: str) -> None:
+            if main:
+                tqdm.write(message)
+
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
-        self.out.mkdir(parents=True, exist_ok=True)
+        if run.enabled and (fewest := distributed.min_rank_samples(self.train_reader, run.world_size)) \
+                < cfg.batch_size:
+            raise TrainingError(f"{run.world_size} ranks x batch {cfg.batch_size}: a rank may be dealt only "
+                                f"{fewest} samples of {cfg.data} ({self.train_reader.num_shards} shards) in an "
+                                f"epoch; use fewer ranks or a smaller --batch-size")
         last_path = self.out / "last.pt"
-        state: dict[str, Any] = {"epoch": 0, "batch_in_epoch": 0, "step": 0, "elapsed_s": 0.0, "best": None}
+        if main:
+            self.out.mkdir(parents=True, exist_ok=True)
+        if run.enabled:
+            self._check_ranks_see_files(run, last_path)
+        state: dict[str, Any] = {"epoch": 0, "batch_in_epoch": 0, "samples_in_epoch": 0, "step": 0,
+                                 "elapsed_s": 0.0, "best": None}
         opt_states: dict[str, Any] | None = None
         if cfg.resume and last_path.exists():
             model, config, extra = load_checkpoint(last_path)
@@ -303,15 +341,18 @@ class Trainer:
             if config.model != cfg.model:
                 raise TrainingError(f"{last_path} holds a {config.model!r} model, not {cfg.model!r}")
             state.update(extra.get("train_state", {}))
+            # Checkpoints from before distributed training count batches of the same size, one rank.
+            state.setdefault("samples_in_epoch", state["batch_in_epoch"] * cfg.batch_size)
             opt_states = extra.get("optimizers")
             if "rng" in extra:
                 torch.set_rng_state(extra["rng"])
-            truncate_after_step(self.out / TRAIN_LOG, state["step"])
-            truncate_after_step(self.out / VAL_LOG, state["step"])
+            if main:
+                truncate_after_step(self.out / TRAIN_LOG, state["step"])
+                truncate_after_step(self.out / VAL_LOG, state["step"])
         else:
             if cfg.resume:
-                tqdm.write(f"--resume: no {last_path}; starting a new run")
-            torch.manual_seed(cfg.seed)
+                say(f"--resume: no {last_path}; starting a new run")
+            torch.manual_seed(cfg.seed)  # the same weights on every rank
             if cfg.init_from is not None:
                 model, config, extra = load_checkpoint(cfg.init_from)
                 if config.model != cfg.model:
@@ -326,14 +367,44 @@ class Trainer:
             else:
                 config = self._model_config()
                 model = get_model_class(config.model)(config)
-            for name in ("train_log.csv", "val_log.csv"):
-                (self.out / name).unlink(missing_ok=True)
+            if main:
+                for name in ("train_log.csv", "val_log.csv"):
+                    (self.out / name).unlink(missing_ok=True)
+        if run.rank:
+            # Each rank its own noise (rank 0 keeps the stream a single process has, saved in last.pt).
+            torch.manual_seed(distributed.rank_seed(cfg.seed, run.rank, state["step"]))
         if config.grid_size != self.train_reader.grid_size:
             raise TrainingError(f"model grid {config.grid_size} != dataset grid {self.train_reader.grid_size}")
-        config.to_yaml(self.out / "model_config.yaml")
-        (self.out / "train_config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
+        if main:
+            config.to_yaml(self.out / "model_config.yaml")
+            (self.out / "train_config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
 
         model.to(ctx.device).to_fast_layout().train()
+        if run.enabled:
+            model.set_wrappers(run.wrap(model))
+        try:
+            return self._train(run, stop, model, config, state, opt_states, say)
+        finally:
+            model.set_wrappers({})
+
+    def _check_ranks_see_files(self, run: DistributedRun, last_path: Path) -> None:
+        """Every rank reads last.pt / --init-from itself: they must all see the same files."""
+        cfg = self.cfg
+        has_last = cfg.resume and last_path.exists()
+        lacks_init = cfg.init_from is not None and not Path(cfg.init_from).exists()
+        some_have, some_lack, init_missing = run.any(has_last, cfg.resume and not has_last, lacks_init)
+        if some_have and some_lack:
+            raise TrainingError(f"{last_path} exists for some ranks only: --out must be a directory every rank "
+                                f"sees (a shared filesystem)")
+        if init_missing:
+            raise TrainingError(f"--init-from {cfg.init_from} is missing for some ranks: it must be readable by "
+                                f"every rank")
+
+    def _train(self, run: DistributedRun, stop: distributed.StopFlag | None, model: CompletionModel,
+               config: ModelConfig, state: dict[str, Any], opt_states: dict[str, Any] | None,
+               say: Callable[[str], None]) -> dict[str, Any]:
+        cfg, ctx, main = self.cfg, self.ctx, run.is_main
+        last_path = self.out / "last.pt"
         optimizers = model.make_optimizers(cfg.lr)
         if opt_states:
             for name, opt in optimizers.items():
@@ -343,16 +414,20 @@ class Trainer:
         fresh_run = state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0
         if fresh_run and (not cfg.init_from or state.get("init_weights_only")):
             t0 = time.perf_counter()
-            pre = model.pretrain(self._box_source(), ctx)
+            pre = model.pretrain(self._box_source(run), ctx)
+            run.average_buffers(model)
             if pre:
-                tqdm.write(f"pretrain: {pre} in {time.perf_counter() - t0:.1f} s")
+                say(f"pretrain: {pre} in {time.perf_counter() - t0:.1f} s")
                 state["pretrain"] = pre
 
         train_log, val_log = CsvLog(self.out / TRAIN_LOG), CsvLog(self.out / VAL_LOG)
         better = BEST_METRICS[cfg.best_metric]
-        steps_per_epoch = len(self.train_reader) // cfg.batch_size if len(self.train_reader) > cfg.batch_size \
-            else 1
-        drop_last = len(self.train_reader) > cfg.batch_size
+        global_batch = cfg.batch_size * run.world_size
+        if run.enabled:
+            steps_per_epoch, drop_last = max(len(self.train_reader) // global_batch, 1), True
+        else:
+            drop_last = len(self.train_reader) > cfg.batch_size
+            steps_per_epoch = len(self.train_reader) // cfg.batch_size if drop_last else 1
         start = time.perf_counter() - state["elapsed_s"]
         invocation_start = time.perf_counter()  # --max-minutes limits this invocation (also on --resume)
         budget_s = cfg.max_minutes * 60 if cfg.max_minutes else math.inf
@@ -366,6 +441,7 @@ class Trainer:
 
         def checkpoint(candidate: dict[str, float] | None) -> None:
             state["elapsed_s"] = elapsed()
+            state["world_size"] = run.world_size  # for the record: nothing saved depends on it
             improved = False
             if candidate is not None and math.isfinite(value := candidate[cfg.best_metric]):
                 best = state["best"]
@@ -383,14 +459,16 @@ class Trainer:
                 save_checkpoint(self.out / "best.pt", model, config, meta, half=cfg.half_checkpoint)
 
         def run_validation() -> dict[str, float]:
+            if not main:
+                return {}  # rank 0 validates; the others wait for it in the next collective
             t0 = time.perf_counter()
             result = validate(model, self.val_reader, ctx, cfg.val_max_samples, cfg.val_slice,
                               cfg.val_num_samples, max(cfg.batch_size, 8), cfg.seed)
             row = {"step": state["step"], "epoch": state["epoch"], "elapsed_s": elapsed(), **result}
             val_log.write(row)
-            tqdm.write(f"[val] step {state['step']} epoch {state['epoch']}: bce {result['val_bce']:.4f} "
-                       f"iou {result['val_iou']:.3f} best-acc {result['val_best_acc_mm']:.2f} mm "
-                       f"({time.perf_counter() - t0:.1f} s)")
+            say(f"[val] step {state['step']} epoch {state['epoch']}: bce {result['val_bce']:.4f} "
+                f"iou {result['val_iou']:.3f} best-acc {result['val_best_acc_mm']:.2f} mm "
+                f"({time.perf_counter() - t0:.1f} s)")
             checkpoint(result)
             plot_curves(self.out, title=f"{config.model} {config.grid_size}^3")
             return result
@@ -400,23 +478,34 @@ class Trainer:
         try:
             while state["epoch"] < cfg.epochs and stopped_by == "epochs":
                 epoch = state["epoch"]
-                batches = self.train_reader.iter_batches(cfg.batch_size, shuffle=True, seed=cfg.seed + epoch,
-                                                         drop_last=drop_last, keys=TRAINING_KEYS)
-                bar = tqdm(total=steps_per_epoch, initial=state["batch_in_epoch"], desc=f"epoch {epoch}",
-                           disable=not cfg.progress, dynamic_ncols=True, leave=False)
+                # Where a resumed epoch continues: exact with the same ranks and batch; else at the same fraction.
+                done = state["samples_in_epoch"] // global_batch
+                stream = prefetch(map(batch_to_tensors, self._batches(run, cfg.batch_size, cfg.seed + epoch,
+                                                                      drop_last, TRAINING_KEYS)))
+                bar = tqdm(total=steps_per_epoch, initial=done, desc=f"epoch {epoch}",
+                           disable=not (cfg.progress and main), dynamic_ncols=True, leave=False)
                 sums: dict[str, float] = {}
                 n_logged, t_log = 0, time.perf_counter()
-                for i, batch in enumerate(prefetch(map(batch_to_tensors, batches))):
-                    if i < state["batch_in_epoch"]:
-                        continue  # resuming mid-epoch: same shuffle, skip what was done
-                    if len(batch["index"]) < 2:
-                        continue  # batch norm (flow) needs two samples
+                for _ in range(done):
+                    next(stream, None)
+                batch = next(stream, None)
+                (epoch_over,) = run.any(batch is None)
+                while not epoch_over:
                     losses = model.training_step(batch, optimizers, ctx)
-                    if not all(math.isfinite(v) for v in losses.values()):
-                        raise TrainingError(f"non-finite loss at step {state['step']}: {losses}; "
-                                            f"lower --lr or use --precision fp32")
-                    state["step"] += 1
-                    state["batch_in_epoch"] = i + 1
+                    run.average_buffers(model)
+                    batch = next(stream, None)
+                    # One agreement per step: every rank leaves the loop after the same step.
+                    non_finite, signalled, time_up, epoch_over = run.any(
+                        not all(math.isfinite(v) for v in losses.values()), stop is not None and stop.is_set(),
+                        time.perf_counter() - invocation_start > budget_s, batch is None)
+                    if non_finite:
+                        raise TrainingError(f"non-finite loss at step {state['step']}: {losses}"
+                                            f"{' (on some rank)' if run.enabled else ''}; lower --lr or use "
+                                            f"--precision fp32")
+                    done += 1
+                    state.update(step=state["step"] + 1, batch_in_epoch=done, samples_in_epoch=done * global_batch)
+                    if signalled:
+                        raise KeyboardInterrupt
                     for k, v in losses.items():
                         sums[k] = sums.get(k, 0.0) + v
                     n_logged += 1
@@ -424,40 +513,43 @@ class Trainer:
                     bar.set_postfix(loss=f"{losses['loss']:.1f}", rec=f"{losses['rec']:.1f}")
                     if state["step"] % cfg.log_every == 0:
                         now = time.perf_counter()
-                        train_log.write({"step": state["step"], "epoch": epoch, "elapsed_s": elapsed(),
-                                         "samples_per_s": n_logged * cfg.batch_size / (now - t_log),
-                                         **{k: v / n_logged for k, v in sums.items()}})
+                        means = run.mean({k: v / n_logged for k, v in sums.items()})
+                        if main:
+                            train_log.write({"step": state["step"], "epoch": epoch, "elapsed_s": elapsed(),
+                                             "samples_per_s": n_logged * global_batch / (now - t_log), **means})
                         sums, n_logged, t_log = {}, 0, now
                     if cfg.val_every and state["step"] % cfg.val_every == 0:
                         last_val = run_validation()
-                    if time.perf_counter() - invocation_start > budget_s:
+                    if time_up:
                         stopped_by = "max_minutes"
-                        break
-                    if cfg.max_steps is not None and state["step"] >= cfg.max_steps:
+                    elif cfg.max_steps is not None and state["step"] >= cfg.max_steps:
                         stopped_by = "max_steps"
+                    if stopped_by != "epochs":
                         break
                 bar.close()
                 if stopped_by == "epochs":
-                    state["epoch"] += 1
-                    state["batch_in_epoch"] = 0
+                    state.update(epoch=state["epoch"] + 1, batch_in_epoch=0, samples_in_epoch=0)
                 if not cfg.val_every or stopped_by != "epochs":
                     last_val = run_validation()
         except KeyboardInterrupt:
-            tqdm.write("interrupted: saving last.pt (continue with --resume)")
-            checkpoint(None)
+            if main:
+                say("interrupted: saving last.pt (continue with --resume)")
+                checkpoint(None)
             raise
         if not last_val:
             last_val = run_validation()
-        if saved_at[0] != state["step"]:
+        if main and saved_at[0] != state["step"]:
             checkpoint(None)
         summary = {"model": config.model, "grid_size": config.grid_size, "steps": state["step"],
                    "epochs_completed": state["epoch"], "elapsed_s": elapsed(), "stopped_by": stopped_by,
                    "precision": ctx.precision, "device": str(ctx.device), "best_" + cfg.best_metric: state["best"],
                    "last_validation": last_val, "pretrain": state.get("pretrain"),
-                   "init_from": state.get("init_from"),
+                   "init_from": state.get("init_from"), "rank": run.rank, "world_size": run.world_size,
+                   "global_batch": global_batch,
                    "train_samples": len(self.train_reader), "data": cfg.data, "val_data": cfg.val_data}
-        (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
-        plot_curves(self.out, title=f"{config.model} {config.grid_size}^3")
+        if main:
+            (self.out / "summary.json").write_text(json.dumps(summary, indent=2))
+            plot_curves(self.out, title=f"{config.model} {config.grid_size}^3")
         return summary
 
 
