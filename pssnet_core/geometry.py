@@ -536,7 +536,8 @@ def carve_free_space(depth: np.ndarray, usable: np.ndarray, intrinsics: CameraIn
     u = np.rint(np.float32(intrinsics.fx) * x * inv_z + np.float32(intrinsics.cx))
     v = np.rint(np.float32(intrinsics.fy) * y * inv_z + np.float32(intrinsics.cy))
     in_image = in_front & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
-    flat = np.where(in_image, v * intrinsics.width + u, 0).astype(np.int64)
+    # The pixel index in int64: float32 holds integers exactly only up to 2**24, fewer pixels than a 4200 x 4200 image.
+    flat = np.where(in_image, v.astype(np.int64) * intrinsics.width + u.astype(np.int64), 0)
     free = in_image & (z + np.float32(half_diagonal) < nearest_reading.reshape(-1)[flat])
     return free.reshape(pose.size, pose.size, pose.size)
 

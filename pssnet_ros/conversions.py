@@ -5,7 +5,8 @@ byte order (``is_bigendian``) and with row padding (``step`` larger than ``width
 Point clouds: (M, 3) points plus an optional per-point ``sample`` index, as x, y, z float32 (+ uint32
 ``sample``), and back from any PointCloud2 that has float32/float64 x, y, z fields.
 
-Every malformed message raises :class:`ConversionError` with a message that says what is wrong.
+Every malformed message raises :class:`ConversionError` with a message that says what is wrong (the property
+that test/test_fuzz_conversions.py checks on arbitrary messages).
 """
 
 from __future__ import annotations
@@ -33,11 +34,19 @@ IMAGE_ENCODINGS: dict[str, tuple[str, int]] = {
 }
 DEPTH_ENCODINGS: tuple[str, ...] = ("32FC1", "16UC1", "mono16")
 MASK_ENCODINGS: tuple[str, ...] = ("mono8", "8UC1")
+#: largest value of the uint32 size fields of Image and PointCloud2 (height, width, step, row_step, ...)
+UINT32_MAX = 2**32 - 1
+#: numpy cannot build a record type larger than this, so no PointCloud2 point may be
+MAX_POINT_STEP = 2**31 - 1
+#: how far R R^T of a pose may differ from the identity (float32 poses from other nodes pass)
+ROTATION_TOLERANCE = 1e-5
 
 _POINTFIELD_DTYPES: dict[int, str] = {
     PointField.INT8: "i1", PointField.UINT8: "u1", PointField.INT16: "i2", PointField.UINT16: "u2",
     PointField.INT32: "i4", PointField.UINT32: "u4", PointField.FLOAT32: "f4", PointField.FLOAT64: "f8",
 }
+_INTEGER_POINTFIELDS = (PointField.INT8, PointField.UINT8, PointField.INT16, PointField.UINT16, PointField.INT32,
+                        PointField.UINT32)
 
 
 def image_to_numpy(msg: Image, allowed: tuple[str, ...] | None = None, name: str = "image") -> np.ndarray:
@@ -82,8 +91,8 @@ def depth_to_metres(msg: Image, depth_scale: float = 0.001) -> np.ndarray:
         msg: 32FC1 (metres) or 16UC1/mono16 (integer units).
         depth_scale: metres per unit of a 16-bit image (0.001 for millimetres).
     """
-    if not depth_scale > 0:
-        raise ConversionError(f"depth_scale must be positive, got {depth_scale}")
+    if not 0 < depth_scale < float("inf"):
+        raise ConversionError(f"depth_scale must be positive and finite, got {depth_scale}")
     depth = image_to_numpy(msg, DEPTH_ENCODINGS, "depth")
     if depth.dtype == np.float32:
         return depth
@@ -105,6 +114,10 @@ def numpy_to_image(array: np.ndarray, encoding: str, header: Header | None = Non
         header: stamp and frame (default: empty).
         is_bigendian: byte order of the data written.
         step: row length in bytes (default: no padding); larger values pad each row with zeros.
+
+    Raises:
+        ConversionError: unknown encoding, an array that is not 2-D, or a step below the row size or beyond
+            what the message's uint32 field holds.
     """
     if encoding not in IMAGE_ENCODINGS:
         raise ConversionError(f"cannot encode {encoding!r}; supported: {', '.join(IMAGE_ENCODINGS)}")
@@ -120,6 +133,10 @@ def numpy_to_image(array: np.ndarray, encoding: str, header: Header | None = Non
     step = row_bytes if step is None else int(step)
     if step < row_bytes:
         raise ConversionError(f"step {step} is smaller than the row size {row_bytes}")
+    # Checked before allocating: an absurd step would otherwise allocate step * height bytes first.
+    if max(step, height, width) > UINT32_MAX:
+        raise ConversionError(f"image of {width}x{height} with step {step} does not fit the uint32 fields of "
+                              "sensor_msgs/Image")
     buffer = np.zeros((height, step), dtype=np.uint8)
     buffer[:, :row_bytes] = np.ascontiguousarray(array.astype(dtype)).view(np.uint8).reshape(height, row_bytes)
     msg = Image()
@@ -173,18 +190,27 @@ def points_to_pointcloud2(points: np.ndarray, header: Header | None = None,
     """(M, 3) points (+ optional (M,) per-point sample index) -> unorganised PointCloud2.
 
     Fields: x, y, z float32 at offsets 0, 4, 8 and, when ``sample`` is given, ``sample`` uint32 at 12.
+
+    Raises:
+        ConversionError: points that are not an (M, 3) array of real numbers, or sample indices that are not
+            integers in the uint32 range.
     """
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ConversionError(f"points must have shape (M, 3), got {points.shape}")
+    # Complex numbers would lose their imaginary part without a word, strings fail inside numpy.
+    if not (np.issubdtype(points.dtype, np.integer) or np.issubdtype(points.dtype, np.floating)):
+        raise ConversionError(f"points must be real numbers, got dtype {points.dtype}")
     fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate("xyz")]
     names, formats = ["x", "y", "z"], ["<f4", "<f4", "<f4"]
     if sample is not None:
         sample = np.asarray(sample)
         if sample.shape != (len(points),):
             raise ConversionError(f"sample must have shape ({len(points)},), got {sample.shape}")
-        if len(sample) and (sample.min() < 0 or not np.issubdtype(sample.dtype, np.integer)):
-            raise ConversionError("sample indices must be non-negative integers")
+        # Beyond the uint32 range an index would wrap around silently when written.
+        if len(sample) and (not np.issubdtype(sample.dtype, np.integer) or sample.min() < 0
+                            or sample.max() > UINT32_MAX):
+            raise ConversionError(f"sample indices must be integers in [0, {UINT32_MAX}]")
         fields.append(PointField(name="sample", offset=12, datatype=PointField.UINT32, count=1))
         names.append("sample")
         formats.append("<u4")
@@ -211,7 +237,8 @@ def pointcloud2_to_numpy(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | Non
     """PointCloud2 -> ((M, 3) float64 points, (M,) int64 ``sample`` index or None when the field is absent).
 
     Reads any layout (field offsets, padding in ``point_step``/``row_step``, either byte order) as long as
-    x, y, z are float32 or float64.
+    x, y, z are float32 or float64 and ``sample``, when present, is an integer type. When several fields share a
+    name, the last one is read.
 
     Raises:
         ConversionError: missing x/y/z, unsupported field type, or a data length that does not match.
@@ -224,9 +251,10 @@ def pointcloud2_to_numpy(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | Non
         if by_name[axis].datatype not in (PointField.FLOAT32, PointField.FLOAT64):
             raise ConversionError(f"point cloud field {axis!r} must be float32 or float64")
     wanted = [n for n in ("x", "y", "z", "sample") if n in by_name]
-    for n in wanted:
-        if by_name[n].datatype not in _POINTFIELD_DTYPES:
-            raise ConversionError(f"point cloud field {n!r} has unknown datatype {by_name[n].datatype}")
+    # A float index would turn NaN or 1e30 into an arbitrary integer.
+    if "sample" in by_name and by_name["sample"].datatype not in _INTEGER_POINTFIELDS:
+        raise ConversionError(f"point cloud field 'sample' must be an integer type, got datatype "
+                              f"{by_name['sample'].datatype}")
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     height, width = int(msg.height), int(msg.width)
     for n in wanted:
@@ -238,11 +266,14 @@ def pointcloud2_to_numpy(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | Non
     if len(msg.data) != row_step * height:
         raise ConversionError(f"point cloud data has {len(msg.data)} bytes; expected row_step {row_step} x "
                               f"height {height} = {row_step * height}")
+    if height * width == 0:
+        return np.zeros((0, 3)), (np.zeros(0, dtype=np.int64) if "sample" in by_name else None)
+    if point_step > MAX_POINT_STEP:
+        raise ConversionError(f"point cloud point_step {point_step} is beyond the {MAX_POINT_STEP} bytes a point can "
+                              "have here")
     record = np.dtype({"names": wanted,
                        "formats": [order + _POINTFIELD_DTYPES[by_name[n].datatype] for n in wanted],
                        "offsets": [by_name[n].offset for n in wanted], "itemsize": point_step})
-    if height * width == 0:
-        return np.zeros((0, 3)), (np.zeros(0, dtype=np.int64) if "sample" in by_name else None)
     raw = np.frombuffer(memoryview(msg.data), dtype=np.uint8).reshape(height, row_step)[:, :point_step * width]
     cloud = np.ascontiguousarray(raw).view(record).reshape(-1)
     points = np.stack([cloud[a].astype(np.float64) for a in "xyz"], axis=1)
@@ -251,11 +282,26 @@ def pointcloud2_to_numpy(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | Non
 
 
 def matrix_to_pose(matrix: np.ndarray) -> Pose:
-    """4x4 rigid transform -> geometry_msgs/Pose (position + unit quaternion)."""
+    """4x4 rigid transform -> geometry_msgs/Pose (position + unit quaternion).
+
+    Raises:
+        ConversionError: not a finite 4x4 matrix, its bottom row is not [0, 0, 0, 1], or its upper-left 3x3 block
+            is not a rotation.
+    """
     matrix = np.asarray(matrix, dtype=np.float64)
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
         raise ConversionError(f"pose must be a finite 4x4 matrix, got shape {matrix.shape}")
-    x, y, z, w = Rotation.from_matrix(matrix[:3, :3]).as_quat()
+    if np.abs(matrix[3] - [0.0, 0.0, 0.0, 1.0]).max() > ROTATION_TOLERANCE:
+        raise ConversionError(f"pose bottom row must be [0, 0, 0, 1], got {matrix[3].tolist()}")
+    # scipy would raise its own error on a reflection and quietly orthonormalise a scaled or sheared block.
+    rotation = matrix[:3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):
+        error = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+        determinant = float(np.linalg.det(rotation))
+    if not (error <= ROTATION_TOLERANCE and determinant > 0):
+        raise ConversionError(f"pose rotation is not a rotation matrix (R R^T differs from I by {error:.3g}, det "
+                              f"{determinant:.3g})")
+    x, y, z, w = Rotation.from_matrix(rotation).as_quat()
     pose = Pose()
     pose.position.x, pose.position.y, pose.position.z = (float(v) for v in matrix[:3, 3])
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in (x, y, z, w))
@@ -263,11 +309,23 @@ def matrix_to_pose(matrix: np.ndarray) -> Pose:
 
 
 def pose_to_matrix(pose: Pose) -> np.ndarray:
-    """geometry_msgs/Pose -> 4x4 rigid transform."""
+    """geometry_msgs/Pose -> 4x4 rigid transform.
+
+    Raises:
+        ConversionError: a position that is not finite, or a quaternion that is not finite or (almost) zero.
+    """
+    position = np.array([pose.position.x, pose.position.y, pose.position.z])
+    if not np.all(np.isfinite(position)):
+        raise ConversionError(f"pose position must be finite, got {position.tolist()}")
     q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
-    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+    if not np.all(np.isfinite(q)):
+        raise ConversionError(f"pose orientation is not a valid quaternion: {q.tolist()}")
+    # Scaled to a largest entry of 1 first: scipy's own normalisation overflows from about 1e154 and then
+    # returns an all-zero "rotation".
+    largest = float(np.abs(q).max())
+    if largest == 0.0 or np.linalg.norm(q / largest) < 1e-9 / largest:
         raise ConversionError(f"pose orientation is not a valid quaternion: {q.tolist()}")
     matrix = np.eye(4)
-    matrix[:3, :3] = Rotation.from_quat(q).as_matrix()
-    matrix[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    matrix[:3, :3] = Rotation.from_quat(q / largest).as_matrix()
+    matrix[:3, 3] = position
     return matrix
