@@ -37,7 +37,7 @@ from pssnet_core.data.datasets import dataset_specs  # noqa: E402
 from pssnet_core.data.store import DatasetReader  # noqa: E402
 from pssnet_core.evaluation.plausible import PlausibleConfig, ProceduralMeshes, compute_plausible_sets  # noqa: E402
 from pssnet_core.evaluation.testsets import load_test_set  # noqa: E402
-from pssnet_core.ray_tasks import RayConfig, TaskRunner  # noqa: E402
+from pssnet_core.ray_tasks import RayConfig, TaskRunner, descendants, process_stats  # noqa: E402
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -51,20 +51,9 @@ def machine_busy_seconds() -> float:
 
 def own_cpu_seconds() -> float:
     """CPU seconds of this process and its live descendants (the Ray workers, which live until Ray stops)."""
-    parents, times = {}, {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            parents[int(entry.name)] = int(fields[1])
-            times[int(entry.name)] = (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
-    tree, frontier = {os.getpid()}, {os.getpid()}
-    while frontier:
-        frontier = {p for p, parent in parents.items() if parent in frontier} - tree
-        tree |= frontier
-    return sum(times.get(p, 0.0) for p in tree)
+    stats = process_stats()
+    tree = descendants(os.getpid(), stats) | {os.getpid()}
+    return sum((int(stats[p][11]) + int(stats[p][12])) / CLOCK_TICKS for p in tree if p in stats)
 
 
 @dataclass

@@ -23,6 +23,7 @@ import logging
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 from tqdm import tqdm
@@ -230,3 +231,28 @@ def ray_config(args: Any) -> RayConfig:
 
 
 __all__ = ["RayConfig", "RayTasksError", "TaskRunner", "add_ray_options", "ray_config"]
+
+
+def process_stats() -> dict[int, list[str]]:
+    """The fields after the command name of /proc/PID/stat for every live (non-zombie) process (Linux)."""
+    stats: dict[int, list[str]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:  # the process ended while the table was read
+                continue
+            if fields[0] != "Z":
+                stats[int(entry.name)] = fields
+    return stats
+
+
+def descendants(pid: int, stats: Mapping[int, list[str]] | None = None) -> set[int]:
+    """Live processes below ``pid`` (e.g. the Ray workers a local Ray started), from :func:`process_stats`."""
+    parents = {p: int(fields[1]) for p, fields in (stats if stats is not None else process_stats()).items()}
+    found: set[int] = set()
+    frontier = {pid}
+    while frontier:
+        frontier = {p for p, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found

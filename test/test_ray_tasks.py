@@ -28,27 +28,9 @@ from pssnet_core.data.datasets import dataset_specs
 from pssnet_core.data.store import DatasetReader
 from pssnet_core.evaluation.evaluate import evaluate_set
 from pssnet_core.evaluation.plausible import MeshTable, PlausibleConfig, PlausibleSets, compute_plausible_sets
-from pssnet_core.ray_tasks import RAY_ADDRESS_ENV, RayConfig, RayTasksError, TaskRunner
+from pssnet_core.ray_tasks import RAY_ADDRESS_ENV, RayConfig, RayTasksError, TaskRunner, descendants
 
 WORKERS = 2
-
-
-def descendants(pid: int) -> set[int]:
-    """Live processes below ``pid`` (from /proc; zombies count as gone)."""
-    parents: dict[int, int] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if fields[0] != "Z":
-                parents[int(entry.name)] = int(fields[1])
-    found, frontier = set(), {pid}
-    while frontier:
-        frontier = {p for p, parent in parents.items() if parent in frontier} - found
-        found |= frontier
-    return found
 
 
 @pytest.fixture(scope="module")
