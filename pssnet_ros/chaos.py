@@ -347,6 +347,8 @@ class OutputWindow:
         node_cpu_pct: the node's CPU time over the window, % of one core.
         others_cpu_pct: CPU time every other process on the machine took, % of one core (the subscribers,
             this process, and whatever else runs: a loaded machine slows the node, not the subscribers).
+        spare_cpu_pct: CPU time nobody used (idle), % of one core: a node that waits with work pending while
+            this is high is stalled; with none spare it is starved.
     """
 
     label: str
@@ -358,6 +360,7 @@ class OutputWindow:
     node_rss_mb: float
     node_cpu_pct: float
     others_cpu_pct: float
+    spare_cpu_pct: float
 
     @property
     def rate_hz(self) -> float:
@@ -370,8 +373,8 @@ class OutputWindow:
                 f"{self.delivered} delivered to the normal subscriber; stamp -> received p50 "
                 f"{np.percentile(lat, 50):.0f} ms, p95 {np.percentile(lat, 95):.0f} ms; {len(self.service_ms)} "
                 f"service calls p50 {np.percentile(svc, 50):.0f} ms, max {svc.max():.0f} ms; node RSS "
-                f"{self.node_rss_mb:.0f} MB, node CPU {self.node_cpu_pct:.0f} %, others {self.others_cpu_pct:.0f} % "
-                f"(of one core)")
+                f"{self.node_rss_mb:.0f} MB, node CPU {self.node_cpu_pct:.0f} %, others {self.others_cpu_pct:.0f} %, "
+                f"idle {self.spare_cpu_pct:.0f} % (of one core)")
 
 
 def measure_window(ros: RosClient, listener: CompletionsListener, node: RosProcess, seconds: float, label: str,
@@ -392,7 +395,7 @@ def measure_window(ros: RosClient, listener: CompletionsListener, node: RosProce
             raise RuntimeError(f"the service refused a valid request: {response.message}")
         time.sleep(max(0.0, min(call_every_s - (time.perf_counter() - t0), start + seconds - time.monotonic())))
     elapsed = time.monotonic() - start
-    node_cpu, (busy, _) = cpu_seconds(node.pid) - cpu, machine_cpu()
+    node_cpu, (busy, total) = cpu_seconds(node.pid) - cpu, machine_cpu()
     processed = ros.stats(timeout)["sets_processed"] - before["sets_processed"]
     wait_until(lambda: len(listener) - first >= processed, timeout,
                f"the {processed} completions of the window at the normal subscriber")
@@ -400,7 +403,8 @@ def measure_window(ros: RosClient, listener: CompletionsListener, node: RosProce
     return OutputWindow(label=label, seconds=elapsed, sets_processed=processed, delivered=len(arrivals),
                         latency_ms=[(t - s * 1e-9) * 1000 for t, s in arrivals], service_ms=service_ms,
                         node_rss_mb=rss_mb(node.pid), node_cpu_pct=node_cpu / elapsed * 100,
-                        others_cpu_pct=(busy - machine[0] - node_cpu) / elapsed * 100)
+                        others_cpu_pct=(busy - machine[0] - node_cpu) / elapsed * 100,
+                        spare_cpu_pct=((total - machine[1]) - (busy - machine[0])) / elapsed * 100)
 
 
 def process_state(pid: int) -> str:

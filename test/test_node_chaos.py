@@ -186,7 +186,7 @@ def test_stalled_subscribers_stall_neither_completions_nor_the_service(node, ros
         camera.wait_for(r"publishing", TIMEOUT)
         wait_until(lambda: len(listener) > 0, TIMEOUT, "a first completion at the normal subscriber")
         request = chaos.scene_request(chaos.LIGHT_SAMPLES, grasps=False)
-        alone, _ = chaos.run_with_subscribers(ros, listener, node, env, (), 3.0, request, TIMEOUT)
+        alone, _ = chaos.run_with_subscribers(ros, listener, node, env, (), 4.0, request, TIMEOUT)
         stalled, lines = chaos.run_with_subscribers(ros, listener, node, env, chaos.SUBSCRIBER_MODES, 6.0, request,
                                                     TIMEOUT)
     finally:
@@ -194,8 +194,15 @@ def test_stalled_subscribers_stall_neither_completions_nor_the_service(node, ros
         ros.set_parameters(continuous=False)
     assert alone.sets_processed >= 3, alone.summary()
     assert stalled.delivered >= stalled.sets_processed, stalled.summary()
-    # Half the pace alone is the bar: the subscriber processes share the two cores with the node.
-    assert stalled.rate_hz >= 0.5 * alone.rate_hz, f"{alone.summary()}\n{stalled.summary()}"
+    assert stalled.sets_processed >= 3, stalled.summary()
+    # A stall is the node waiting, idle, with inputs pending while the machine has CPU to spare. Half the pace
+    # alone is the bar; below it the window must show why the machine, not the subscribers, slowed the node:
+    # no core left to spare (other processes took them), or the node burnt as much CPU as alone (the virtual
+    # CPU itself ran slower). Pace alone varied 0.6-2x between 20 s windows on a shared machine (RELIABILITY.md).
+    paced = stalled.rate_hz >= 0.5 * alone.rate_hz
+    starved = stalled.spare_cpu_pct < 25.0
+    working = stalled.node_cpu_pct >= 0.8 * alone.node_cpu_pct
+    assert paced or starved or working, f"stalled:\n{alone.summary()}\n{stalled.summary()}"
     assert max(stalled.service_ms) < 10_000, stalled.summary()
     assert lines["never_spins"] == "handled 0 messages", lines
     assert lines["slow_callback"].startswith("handled"), lines
