@@ -1,5 +1,9 @@
 """Benchmark of completion_node over real DDS (two processes, loopback, the shipped Fast DDS profile).
 
+0. Stage split of one service call, in this process with the node's own functions before the node starts:
+   request deserialisation, message -> numpy conversion and input checks, observation grid, network (encoder
+   + samples), voxel centres, response building and serialisation. Compared with the call over DDS (1.), the
+   rest is transport and the client's side.
 1. Service latency: request sent -> response received, 640x480 32FC1 depth + mask + CameraInfo in the
    request, 20 samples, the model's grid (32^3 for the shipped model); p50/p95 over ``--calls`` calls after
    a warm-up, without and with grasps.
@@ -8,11 +12,13 @@
    were superseded (dropped, never queued).
 
     .venv/bin/python benchmarks/service_bench.py [--model PATH] [--calls 100] [--seconds 10] [--threads 2]
+        [--stage-calls 30]
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import time
@@ -30,6 +36,41 @@ def percentiles(values_s: list[float]) -> str:
     return f"p50 {np.percentile(v, 50):.1f} ms, p95 {np.percentile(v, 95):.1f} ms, min {v.min():.1f}, max {v.max():.1f}"
 
 
+def stage_split(request: object, up: list[float], model: str, samples: int, threads: int,
+                calls: int) -> dict[str, float]:
+    """Median ms per stage of the node's service path for ``request`` (grasps off), run in this process."""
+    from pssnet_interfaces.srv import SampleCompletions
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from pssnet_ros import params
+    from pssnet_ros.completion_io import complete_messages, fill_response, load_pipeline
+
+    pipeline = load_pipeline(dict(params.defaults(), model_path=model, threads=threads, num_samples=samples,
+                                  up_vector=up))
+    raw = serialize_message(request)
+    stages: dict[str, list[float]] = {}
+    for call in range(calls + 5):  # 5 warm-up calls
+        t0 = time.perf_counter()
+        received = deserialize_message(raw, SampleCompletions.Request)
+        t1 = time.perf_counter()
+        result, header = complete_messages(pipeline, received.depth, received.mask, received.camera_info, 0.001,
+                                           samples, False)
+        t2 = time.perf_counter()
+        response = fill_response(SampleCompletions.Response(), result, header)
+        t3 = time.perf_counter()
+        serialize_message(response)
+        t4 = time.perf_counter()
+        if call < 5:
+            continue
+        inner = result.timings  # observe includes the pipeline's input checks
+        split = {"request deserialise": t1 - t0, "message -> numpy": (t2 - t1) - inner["total"],
+                 "observation grid": inner["observe"], "network": inner["network"], "voxel centres": inner["centres"],
+                 "response build": t3 - t2, "response serialise": t4 - t3, "in process, total": t4 - t0}
+        for name, seconds in split.items():
+            stages.setdefault(name, []).append(seconds * 1000)
+    return {name: float(np.median(values)) for name, values in stages.items()}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="", help="checkpoint (default: the shipped model)")
@@ -39,6 +80,8 @@ def main() -> int:
     parser.add_argument("--input-hz", type=float, default=30.0)
     parser.add_argument("--max-rate", type=float, default=30.0, help="node max_rate_hz in the topic-rate run")
     parser.add_argument("--threads", type=int, default=2, help="node torch threads")
+    parser.add_argument("--stage-calls", type=int, default=30,
+                        help="in-process calls for the stage split before the node starts (0 = skip)")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS_DOMAIN_ID (default: one no DDS participant on this machine uses)")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
@@ -53,24 +96,45 @@ def main() -> int:
     from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image
 
     view = render_scene(SceneOptions())
+    header_depth = numpy_to_image(view.depth, "32FC1")
+    mask = numpy_to_image(view.mask, "mono8")
+    info = intrinsics_to_camera_info(view.intrinsics)
+    for msg in (header_depth, mask, info):
+        msg.header.frame_id = "camera_depth_optical_frame"
+    results: dict[str, object] = {}
+    if args.stage_calls:
+        stages = stage_split(SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
+                                                       num_samples=args.samples, compute_grasps=False),
+                             [float(v) for v in view.up], args.model, args.samples, args.threads, args.stage_calls)
+        results["stages_ms"] = stages
+        print(f"[bench] one service call in this process, median of {args.stage_calls} (ms): "
+              + ", ".join(f"{name} {ms:.2f}" for name, ms in stages.items()))
     up = "[" + ",".join(repr(float(v)) for v in view.up) + "]"
     node = RosProcess.python_module(
         "pssnet_ros.completion_node",
         ["--ros-args", "-p", f"up_vector:={up}", "-p", f"threads:={args.threads}", "-p", f"num_samples:={args.samples}",
          "-p", "max_input_age:=0.0"] + (["-p", f"model_path:={args.model}"] if args.model else []),
         ros_env(args.domain_id), name="node")
-    results: dict[str, object] = {}
     try:
         model_line = node.wait_for(r"model .*", timeout=180).group(0)
         node.wait_for(r"ready: serving", timeout=180)
         with RosClient(args.domain_id, "bench_client") as ros:
             service = ros.service(SampleCompletions, SAMPLE_SERVICE)
-            header_depth = numpy_to_image(view.depth, "32FC1")
-            mask = numpy_to_image(view.mask, "mono8")
-            info = intrinsics_to_camera_info(view.intrinsics)
-            for msg in (header_depth, mask, info):
-                msg.header.frame_id = "camera_depth_optical_frame"
             print(f"[bench] {model_line}")
+            # The transport floor: the same 1.5 MB request, refused by the node before any conversion because
+            # its mask is stamped 1 s after its depth image (an answer of a few bytes).
+            unsynchronised = copy.deepcopy(SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
+                                                                     num_samples=args.samples))
+            unsynchronised.depth.header.stamp.sec, unsynchronised.mask.header.stamp.sec = 100, 101
+            floor = []
+            for call in range(args.calls + 5):
+                t0 = time.perf_counter()
+                response = ros.call(service, unsynchronised)
+                if call >= 5:
+                    floor.append(time.perf_counter() - t0)
+                assert not response.success and "unsynchronised" in response.message, response.message
+            results["transport_floor"] = {"p50_ms": float(np.percentile(floor, 50) * 1000)}
+            print(f"[bench] transport floor (request refused at once): {percentiles(floor)}")
             for grasps in (False, True):
                 request = SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
                                                     num_samples=args.samples, compute_grasps=grasps)
@@ -91,6 +155,13 @@ def main() -> int:
                 print(f"[bench] service, 640x480, {args.samples} samples, grasps {'on' if grasps else 'off'}: "
                       f"{percentiles(latencies)} over {args.calls} calls ({points} voxels and "
                       f"{len(response.grasps.poses)} grasps per response; node says: {response.message})")
+                if not grasps and args.stage_calls:
+                    p50 = results[key]["p50_ms"]
+                    split = results["stages_ms"]
+                    results["service_over_network"] = p50 / split["network"]
+                    print(f"[bench] service p50 / network = {p50:.1f} / {split['network']:.1f} ms = "
+                          f"{p50 / split['network']:.2f}x (target <= 1.3x); transport and client "
+                          f"~{p50 - split['in process, total']:.1f} ms")
 
             # Sustained topic rate in continuous mode.
             result = ros.set_parameters(max_rate_hz=float(args.max_rate), continuous=True)

@@ -312,7 +312,7 @@ class CompletionPipeline:
                 raise PipelineInputError(str(error)) from error
         t2 = time.perf_counter()
         pose = observation.pose
-        completions = [pose.occupied_centres(occ).astype(np.float32) for occ in completion.occupancy]
+        completions = pose.occupied_centres_per_grid(completion.occupancy)
         known = pose.occupied_centres(observation.known_occupied).astype(np.float32)
         t3 = time.perf_counter()
         grasps = None

@@ -115,6 +115,21 @@ def output_messages(result: PipelineResult, header: Header) -> OutputMessages:
         grasp_candidates=GraspCandidates(header=header, poses=poses, scores=scores, widths=widths))
 
 
+def fill_response(response: SampleCompletions.Response, result: PipelineResult,
+                  header: Header) -> SampleCompletions.Response:
+    """A successful service response for ``result``: one cloud per sample, the known-occupied cloud and the ranked
+    grasps, all carrying ``header`` (``message`` is the caller's)."""
+    response.header = header
+    response.voxel_size = float(result.voxel_size)
+    response.known_occupied = conversions.points_to_pointcloud2(result.known_occupied, header)
+    response.completions = [conversions.points_to_pointcloud2(c, header) for c in result.completions]
+    poses, scores, widths = grasp_fields(result)
+    response.grasps = PoseArray(header=header, poses=poses)
+    response.grasp_scores, response.grasp_widths = scores, widths
+    response.success = True
+    return response
+
+
 def outputs_from_response(response: SampleCompletions.Response) -> OutputMessages:
     """The publications the node would have made for a successful service response (its samples merged into
     one cloud with a ``sample`` field), e.g. to record a service exchange next to topic output."""

@@ -52,13 +52,12 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from pssnet_core.pipeline import CompletionPipeline, PipelineResult
-from pssnet_ros import conversions
 from pssnet_ros.completion_io import (
     OUTPUT_TOPICS,
     STREAMS,
     SYNC_QUEUE_SIZE,
     complete_messages,
-    grasp_fields,
+    fill_response,
     load_pipeline,
     output_messages,
     stamp_ns,
@@ -406,17 +405,10 @@ class CompletionNode(LifecycleNode):
             response.success, response.message = False, f"internal error: {type(error).__name__}: {error}"
             self.get_logger().error(f"sample_completions failed: {traceback.format_exc()}")
             return response
-        response.header = header
-        response.voxel_size = float(result.voxel_size)
-        response.known_occupied = conversions.points_to_pointcloud2(result.known_occupied, header)
-        response.completions = [conversions.points_to_pointcloud2(c, header) for c in result.completions]
-        poses, scores, widths = grasp_fields(result)
-        response.grasps = PoseArray(header=header, poses=poses)
-        response.grasp_scores, response.grasp_widths = scores, widths
-        response.success = True
+        fill_response(response, result, header)
         self._health.completed(time.perf_counter() - t0)
         points = sum(len(c) for c in result.completions)
-        response.message = (f"{result.num_samples} samples, {points} voxels, {len(poses)} grasps, seed "
+        response.message = (f"{result.num_samples} samples, {points} voxels, {len(response.grasps.poses)} grasps, seed "
                             f"{result.seed}, {(time.perf_counter() - t0) * 1000:.0f} ms")
         return response
 

@@ -252,18 +252,12 @@ def test_cli_with_params_file_topics_and_errors(recordings, parameters, view, tm
 def test_demo_bag_records_the_exchange(tmp_path, view, parameters):
     from pssnet_interfaces.srv import SampleCompletions
 
-    from pssnet_ros.completion_io import complete_messages, grasp_fields, load_pipeline
-    from pssnet_ros.conversions import points_to_pointcloud2
+    from pssnet_ros.completion_io import complete_messages, fill_response, load_pipeline
 
     header = header_at(T0_NS)
     depth, mask, info = view_messages(view, "32FC1", header)
     result, header = complete_messages(load_pipeline(parameters), depth, mask, info, 0.001, 0, True)
-    poses, scores, widths = grasp_fields(result)  # the service's response to these images
-    response = SampleCompletions.Response(
-        header=header, success=True, known_occupied=points_to_pointcloud2(result.known_occupied, header),
-        completions=[points_to_pointcloud2(c, header) for c in result.completions], grasp_scores=scores,
-        grasp_widths=widths)
-    response.grasps.header, response.grasps.poses = header, poses
+    response = fill_response(SampleCompletions.Response(), result, header)  # the service's response to these images
     path = write_demo_bag(tmp_path / "demo.mcap", view, response)
     assert path.is_file() and write_demo_bag(path, view, response) == path  # a second demo run replaces it
     topics = read_back(path)

@@ -118,6 +118,19 @@ def test_grid_pose_dict_round_trip():
     assert (again.size, again.voxel_size) == (pose.size, pose.voxel_size)
 
 
+@pytest.mark.parametrize("size", [16, 20])
+def test_centres_of_a_stack_of_grids_equal_each_grids_own(size):
+    pose = GridPose(rotation=gravity_aligned_rotation(np.array([0.1, -1.0, 0.3])), origin=np.array([0.05, -0.1, 0.6]),
+                    voxel_size=0.2 / size, size=size)
+    occupancy = np.random.default_rng(size).random((5, size, size, size)) < 0.1
+    occupancy[2] = False  # an empty sample keeps its place in the list
+    stacked = pose.occupied_centres_per_grid(occupancy)
+    assert len(stacked) == 5 and stacked[2].shape == (0, 3)
+    for grid, centres in zip(occupancy, stacked, strict=True):
+        assert centres.dtype == np.float32
+        np.testing.assert_allclose(centres, pose.occupied_centres(grid), atol=1e-6)
+
+
 def test_observe_known_occupied_and_free():
     depth, mask = wall_scene()
     config = GridConfig(size=32, voxel_size=0.005)
