@@ -22,7 +22,7 @@ from pssnet_core.models import (
 )
 from pssnet_core.models.base import bce_sum
 from pssnet_core.models.flow import RealNVP
-from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d
+from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d, Decoder3D
 
 GRID = 16
 CPU = StepContext(torch.device("cpu"))
@@ -249,6 +249,38 @@ def test_block_layers_equal_torch_layers_with_gradients(block_cls, torch_cls, c_
     torch.testing.assert_close(x_block.grad, x_ref.grad, rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(block.weight.grad, reference.weight.grad, rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(block.bias.grad, reference.bias.grad, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize(("channels", "grid"), [([3, 5, 4], 16), ([4, 6], 12)])
+def test_block_order_decoder_equals_torch_transposed_convolutions(channels, grid, channels_last):
+    """The decoder runs its stages in block order and shuffles once; the reference is nn.ConvTranspose3d."""
+    torch.manual_seed(0)
+    decoder = Decoder3D(7, channels, grid)
+    with torch.no_grad():  # biases off zero so that a misplaced one shows
+        for p in decoder.parameters():
+            p.normal_(0.0, 0.5)
+    widths = list(reversed(channels))
+    reference = torch.nn.Sequential()
+    for i, (a, b) in enumerate(zip(widths, [*widths[1:], 1], strict=True)):
+        layer = torch.nn.ConvTranspose3d(a, b, kernel_size=2, stride=2)
+        layer.load_state_dict(decoder.deconv[2 * i].state_dict())
+        reference.append(layer)
+        if i < len(widths) - 1:
+            reference.append(torch.nn.ReLU())
+    if channels_last:
+        decoder, reference = (m.to(memory_format=torch.channels_last_3d) for m in (decoder, reference))
+    z = torch.randn(3, 7)
+    z_block, z_ref = z.clone().requires_grad_(True), z.clone().requires_grad_(True)
+    y_block = decoder(z_block)
+    side = grid // 2 ** len(channels)
+    y_ref = reference(torch.relu(decoder.dense(z_ref)).view(-1, channels[-1], side, side, side))
+    assert y_block.shape == y_ref.shape == (3, 1, grid, grid, grid)
+    torch.testing.assert_close(y_block, y_ref, rtol=1e-5, atol=1e-5)
+    weights = torch.randn_like(y_ref)
+    (y_block * weights).sum().backward()
+    (y_ref * weights).sum().backward()
+    torch.testing.assert_close(z_block.grad, z_ref.grad, rtol=1e-4, atol=1e-4)
 
 
 def test_block_layers_reject_wrong_input():

@@ -62,14 +62,32 @@ class BlockDeconv3d(nn.ConvTranspose3d):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         b, c_in, d, h, w = _check_5d(x, self.in_channels)
-        c_out = self.out_channels
+        rows = self.block_rows(x.permute(0, 2, 3, 4, 1).reshape(-1, c_in))  # free for channels_last_3d input
+        return blocks_to_grid(rows, b, (d, h, w), 1)  # NCDHW shape, channels_last_3d memory
+
+    def block_rows(self, rows: torch.Tensor) -> torch.Tensor:
+        """The layer on voxel rows (R, C_in) -> (8 R, C_out): each input row's 2x2x2 output block as 8
+        consecutive rows in [kd, kh, kw] order ("block order"), no shuffle into spatial order."""
+        c_in, c_out = self.in_channels, self.out_channels
         # (C_in, C_out, 2, 2, 2) -> (C_in, [kd, kh, kw, C_out]): a free view for channels_last_3d weights.
         weight = self.weight.permute(0, 2, 3, 4, 1).reshape(c_in, 8 * c_out)
-        rows = x.permute(0, 2, 3, 4, 1).reshape(-1, c_in)  # free for channels_last_3d input
         y = torch.addmm(self.bias.repeat(8), rows, weight) if self.bias is not None else rows @ weight
-        y = (y.view(b, d, h, w, 2, 2, 2, c_out).permute(0, 1, 4, 2, 5, 3, 6, 7)
-             .reshape(b, 2 * d, 2 * h, 2 * w, c_out))
-        return y.permute(0, 4, 1, 2, 3)  # NCDHW shape, channels_last_3d memory
+        return y.view(-1, c_out)
+
+
+def blocks_to_grid(rows: torch.Tensor, batch: int, size: tuple[int, int, int], stages: int) -> torch.Tensor:
+    """Voxel rows in block order after ``stages`` kernel-2 stride-2 upsamplings -> (B, C, D, H, W) in
+    channels_last_3d memory.
+
+    ``rows`` is (B, d, h, w, [kd1, kh1, kw1], ..., [kd_s, kh_s, kw_s], C) flattened, (d, h, w) = ``size``;
+    output depth index D = ((d * 2 + kd1) * 2 + kd2) ... and likewise for H and W. One copy for all stages.
+    """
+    c = rows.shape[-1]
+    y = rows.view(batch, *size, *([2, 2, 2] * stages), c)
+    # axis a (0 = D, 1 = H, 2 = W) of stage j sits at 1 + a + 3 j (j = 0: the coarse grid).
+    spatial = [1 + a + 3 * j for a in range(3) for j in range(stages + 1)]
+    y = y.permute(0, *spatial, y.ndim - 1).reshape(batch, *(n * 2**stages for n in size), c)
+    return y.permute(0, 4, 1, 2, 3)
 
 
 def _check_5d(x: torch.Tensor, channels: int) -> tuple[int, int, int, int, int]:
@@ -122,8 +140,19 @@ class Decoder3D(nn.Module):
         self.deconv = nn.Sequential(*layers)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        h = torch.relu(self.dense(z)).view(-1, self.top, self.side, self.side, self.side)
-        return self.deconv(to_memory_format(h, self.deconv))
+        # Every stage maps each voxel to its own 2x2x2 block, so the stages run on voxel rows in block order
+        # and only the last output is shuffled into spatial order: one copy of the one-channel output
+        # instead of one of every stage's output (see BENCHMARKS.md, "Inference").
+        h = torch.relu(self.dense(z))
+        rows = h.view(-1, self.top, self.side**3).transpose(1, 2).reshape(-1, self.top)  # [b, d, h, w] x C
+        stages = 0
+        for layer in self.deconv:
+            if isinstance(layer, BlockDeconv3d):
+                rows, stages = layer.block_rows(rows), stages + 1
+            else:  # per-voxel (ReLU)
+                rows = layer(rows)
+        side = (self.side,) * 3
+        return blocks_to_grid(rows, h.shape[0], side, stages)
 
 
 class Discriminator3D(nn.Module):
