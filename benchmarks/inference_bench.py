@@ -18,8 +18,10 @@ behind that choice.
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -107,6 +109,7 @@ def main() -> None:
     parser.add_argument("--checkpoint64", default=None)
     parser.add_argument("--layers", action="store_true",
                         help="time each kernel-2 stride-2 stage, torch layer vs Block layer")
+    parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if args.layers:
@@ -118,6 +121,7 @@ def main() -> None:
           f"{args.samples} samples, median of {args.repeats}")
     print(f"{'grid':>5} {'weights':>9} {'fp32 ms':>9} {'fast ms':>9} {'fast':>9} {'speed-up':>9} "
           f"{'max|dp|':>9} {'occ diff':>9}")
+    numbers: dict[str, dict[str, float | str]] = {}
     for grid in args.grids:
         path = {32: args.checkpoint32, 64: args.checkpoint64}.get(grid)
         if path:
@@ -139,6 +143,10 @@ def main() -> None:
         occ = float(((p_fast > 0.5) != (p_ref > 0.5)).mean())
         print(f"{grid:>5} {weights:>9} {fp32_ms:>9.1f} {fast_ms:>9.1f} {fast.precision:>9} "
               f"{fp32_ms / fast_ms:>8.2f}x {diff.max():>9.4f} {occ:>9.5f}")
+        numbers[str(grid)] = {"weights": weights, "fp32_ms": fp32_ms, "fast_ms": fast_ms, "fast": fast.precision,
+                              "max_prob_diff": float(diff.max()), "occupancy_differs": occ}
+    if args.json:
+        args.json.write_text(json.dumps({"samples": args.samples, "threads": args.threads, "grids": numbers}, indent=2))
 
 
 if __name__ == "__main__":

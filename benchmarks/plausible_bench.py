@@ -16,6 +16,7 @@ for the full quadratic set is extrapolated from the measured rate (the script sa
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections.abc import Sequence
@@ -101,6 +102,7 @@ def main() -> int:
     parser.add_argument("--no-prefilter", action="store_true")
     parser.add_argument("--acceptance", action="store_true",
                         help="also report the accepted pairs: what any pre-ICP rejection test could save at most")
+    parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     parser.add_argument("--record-fraction", type=float, default=0.01,
                         help="as `pssnet plausible` (default 0.01); 0 = strict sets, where the diameter bound prunes")
     args = parser.parse_args()
@@ -135,6 +137,10 @@ def main() -> int:
     if args.acceptance:
         for line in acceptance_report(sets, views):
             print(f"  {line}")
+    if args.json:
+        args.json.write_text(json.dumps({"source": source, "observations": m, "references": len(refs),
+                                         "pairs": int(s["pairs"]), "seconds": float(s["seconds"]),
+                                         "pairs_per_second": float(s["pairs_per_second"])}, indent=2))
     if len(refs) < m:
         print(f"ESTIMATE (extrapolated, not measured): full set {full_pairs} pairs -> "
               f"{full_pairs / s['pairs_per_second'] / 60:.1f} min at this rate")

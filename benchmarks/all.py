@@ -1,0 +1,145 @@
+"""Every speed target of the project in one run (`pssnet bench all`): measured value, target, ratio, met.
+
+    .venv/bin/python benchmarks/all.py [--quick] [--plausible-data DIR] [--json OUT]
+
+Runs the benchmark scripts next to this file, each in its own process (thread pools of one runtime slow the
+next one in the same process), and reads back the numbers each writes with ``--json``:
+- inference_bench: encoder once + 20 samples at 32^3 (the shipped model) and 64^3 (random weights);
+- grasp_bench: candidate generation + scoring of 500 candidates x 20 completions at 32^3;
+- service_bench: the node over real DDS: service p50 against the network time of the same call, and the topic
+  rate in continuous mode with grasps (camera at 30 Hz);
+- plausible_bench: plausible-set pairs per second (synthetic mugs unless ``--plausible-data``).
+
+Targets depend on the CPU kind (issue 12): fp32 on AVX2-only CPUs, bf16 where the CPU has AVX512-BF16 or AMX.
+The first lines say which kind this is. On a shared machine compare ratios, not milliseconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+SHIPPED_MODEL = HERE.parent / "pssnet_core" / "checkpoints" / "default_pssnet_32.pt"
+#: Plausible-set pairs per second before issue 12 (BENCHMARKS.md: 8 references of the mug test set, 2 workers,
+#: AVX2 CPU); the target is ten times that.
+PLAUSIBLE_BASELINE_PAIRS_S = 218.0
+
+
+@dataclass(frozen=True)
+class Target:
+    """A speed target: ``at_most`` (times) or at least (rates) ``avx2`` / ``bf16`` depending on the CPU kind."""
+
+    what: str
+    unit: str
+    avx2: float
+    bf16: float
+    at_most: bool = True
+
+
+TARGETS = {
+    "network32": Target("network, encoder + 20 samples, 32^3", "ms", 25.0, 6.0),
+    "network64": Target("network, encoder + 20 samples, 64^3", "ms", 200.0, 50.0),
+    "service": Target("service p50 / network (640x480, 20 samples)", "x", 1.3, 1.3),
+    "grasps": Target("grasp generation + scoring, 500 x 20, 32^3", "ms", 30.0, 30.0),
+    "topics": Target("topics with grasps, camera 30 Hz", "Hz", 5.0, 10.0, at_most=False),
+    "plausible": Target("plausible sets", "pairs/s", 10 * PLAUSIBLE_BASELINE_PAIRS_S,
+                        10 * PLAUSIBLE_BASELINE_PAIRS_S, at_most=False),
+}
+
+
+def cpu_has_bf16() -> tuple[str, bool]:
+    """(model name, whether the CPU computes bf16 natively: AVX512-BF16 or AMX)."""
+    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    fields = {k.strip(): v.strip() for k, v in (line.split(":", 1) for line in text.splitlines() if ":" in line)}
+    flags = set(fields.get("flags", "").split())
+    return fields.get("model name", "unknown CPU"), bool({"avx512_bf16", "amx_bf16"} & flags)
+
+
+def run_step(script: str, args: list[str], out: Path) -> dict:
+    """Runs ``benchmarks/<script>.py args --json out`` and returns its numbers (its output goes to ours)."""
+    command = [sys.executable, str(HERE / f"{script}.py"), *args, "--json", str(out)]
+    print(f"[all] {' '.join(command[1:])}", flush=True)
+    done = subprocess.run(command, check=False)
+    if done.returncode != 0 or not out.is_file():
+        raise RuntimeError(f"{script} exited {done.returncode}")
+    return json.loads(out.read_text())
+
+
+def measure(args: argparse.Namespace, tmp: Path) -> dict[str, float | str]:
+    """Target key -> measured value, or the reason it could not be measured."""
+    repeats = "5" if args.quick else "15"
+    values: dict[str, float | str] = {}
+    steps = {
+        "inference": ("inference_bench", ["--grids", "32", "64", "--repeats", repeats,
+                                          "--checkpoint32", str(SHIPPED_MODEL)]),
+        "grasps": ("grasp_bench", ["--sizes", "32", "--repeats", repeats]),
+        "service": ("service_bench", ["--calls", "20" if args.quick else "100",
+                                      "--seconds", "5" if args.quick else "10",
+                                      "--stage-calls", "10" if args.quick else "30"]),
+        "plausible": ("plausible_bench", (["--data", args.plausible_data] if args.plausible_data else
+                                          ["--synthetic-mugs", "2", "--views", "36"])
+                      + ["--references", "4" if args.quick else "8", "--workers", "2"]),
+    }
+    for name, (script, script_args) in steps.items():
+        try:
+            numbers = run_step(script, script_args, tmp / f"{name}.json")
+        except RuntimeError as error:
+            keys = {"inference": ["network32", "network64"], "service": ["service", "topics"]}.get(name, [name])
+            values.update({key: str(error) for key in keys})
+            continue
+        if name == "inference":
+            values["network32"] = numbers["grids"]["32"]["fast_ms"]
+            values["network64"] = numbers["grids"]["64"]["fast_ms"]
+        elif name == "grasps":
+            values["grasps"] = numbers["sizes"]["32"]["generate_ms"] + numbers["sizes"]["32"]["score_ms"]
+        elif name == "service":
+            values["service"] = numbers["service_over_network"]
+            values["topics"] = numbers["topics"]["output_hz"]
+        else:
+            values["plausible"] = numbers["pairs_per_second"]
+    return values
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repeats and calls (a few minutes)")
+    parser.add_argument("--plausible-data", default=None, help="a test dataset directory (default: synthetic mugs)")
+    parser.add_argument("--json", type=Path, default=None, help="also write the table here")
+    args = parser.parse_args()
+    model, bf16 = cpu_has_bf16()
+    kind = "AVX512-BF16/AMX (bf16 targets)" if bf16 else "AVX2, no bf16 (fp32 targets)"
+    print(f"[all] CPU: {model}: {kind}")
+    with tempfile.TemporaryDirectory() as tmp:
+        values = measure(args, Path(tmp))
+    rows, failures = [], 0
+    print(f"\n[all] CPU: {model}: {kind}")
+    print(f"{'what':<48} {'measured':>12} {'target':>12} {'ratio':>7}  met")
+    for key, target in TARGETS.items():
+        goal = target.bf16 if bf16 else target.avx2
+        value = values.get(key, "not run")
+        if isinstance(value, str):
+            failures += 1
+            print(f"{target.what:<48} {'-':>12} {goal:>9g} {target.unit:<3}{'-':>7}  {value}")
+            rows.append({"what": target.what, "error": value, "target": goal, "unit": target.unit})
+            continue
+        # ratio <= 1 means met, whichever way the target points
+        ratio = value / goal if target.at_most else goal / value if value > 0 else float("inf")
+        sign = "<=" if target.at_most else ">="
+        print(f"{target.what:<48} {value:>8.2f} {target.unit:<3} {sign}{goal:>7g} {target.unit:<3}"
+              f"{ratio:>6.2f}x  {'yes' if ratio <= 1 else 'no'}")
+        rows.append({"what": target.what, "measured": value, "target": goal, "unit": target.unit,
+                     "at_most": target.at_most, "ratio": ratio, "met": ratio <= 1})
+    print("[all] ratio: measured / target for times, target / measured for rates (<= 1 is met)")
+    if args.json:
+        args.json.write_text(json.dumps({"cpu": model, "bf16": bf16, "rows": rows}, indent=2))
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
