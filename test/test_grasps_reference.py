@@ -19,7 +19,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pssnet_core.geometry import GridPose
-from pssnet_core.grasps import GraspCandidates, GraspConfig, GraspSet, check_grasps, plan_grasps
+from pssnet_core.grasps import GraspCandidates, GraspConfig, GraspSet, approach_orientations, check_grasps, plan_grasps
+from pssnet_core.grasps.lattice import PackedGrids, box_or, voxel_box_rows
 
 FIXTURE = Path(__file__).parent / "data" / "grasps_reference.npz"
 CONFIG = GraspConfig()
@@ -75,6 +76,37 @@ def test_checks_of_every_candidate_against_every_completion_are_the_recorded_one
         np.testing.assert_array_equal(getattr(checks, key), reference[f"check_{key}"], err_msg=key)
     np.testing.assert_array_equal(checks.coverage, reference["check_coverage"])
     assert reference["check_finger_hit"].any() and reference["check_coverage"].any() and checks.holds.any()
+
+
+# The palm column of the default gripper at 6.25 mm voxels (some side orientations put lattice points exactly on
+# voxel faces), and a one-point box 2^-25 voxel short of a face, where the float32 sums round onto the face.
+@pytest.mark.parametrize("centre, half, counts", [
+    (np.array([0.0, 0.0, -5.6]), np.array([1.6, 8.0, 5.6]), (5, 17, 13)),
+    (np.array([0.5 - 2.0**-25, 0.0, 0.0]), np.zeros(3), (1, 1, 1)),
+])
+def test_voxel_centred_boxes_read_what_the_general_lattice_reads(centre, half, counts):
+    rng = np.random.default_rng(0)
+    n = 24
+    grid = rng.random((n, n, n)) < 0.3
+    rotations = np.concatenate([approach_orientations(CONFIG)[0], Rotation.random(8, random_state=1).as_matrix()])
+    voxels = rng.integers(0, n, (3000, 3))
+    orientation = rng.integers(0, len(rotations), len(voxels))
+    expected = box_or(np.pad(grid, 1).reshape(1, -1), n + 2, voxels + 0.5, rotations[orientation], centre, half,
+                      counts, keep=(2,))[0]
+    np.testing.assert_array_equal(voxel_box_rows(grid, voxels, rotations, orientation, centre, half, counts),
+                                  expected)
+    assert 0.05 < expected.mean() < 0.95
+
+
+@pytest.mark.parametrize("count", [1, 20, 70, 130])
+def test_bit_words_pack_unpack_and_count(count):
+    rng = np.random.default_rng(count)
+    bits = PackedGrids(rng.random((count, 4, 4, 4)) < 0.3)
+    flags = rng.random((6, 7, count)) < 0.4
+    words = bits.pack(flags)
+    assert words.shape == (len(bits.data), 6, 7) and words.dtype == bits.data.dtype
+    np.testing.assert_array_equal(bits.unpack(words), flags)
+    np.testing.assert_array_equal(bits.count(words), flags.sum(axis=0))
 
 
 def record(path: Path = FIXTURE) -> None:
