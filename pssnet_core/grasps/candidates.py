@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -11,30 +12,39 @@ from scipy import ndimage
 from pssnet_core.geometry import GridPose
 from pssnet_core.grasps.config import GraspConfig, VoxelDims
 from pssnet_core.grasps.inputs import check_occupancy, check_points, estimate_support_height
-from pssnet_core.grasps.lattice import PackedGrids, box_lattice_index, lattice_count, lowest_point
+from pssnet_core.grasps.lattice import PackedGrids, box_or, lattice_count, lowest_point, voxel_box_rows
 from pssnet_core.grasps.results import GraspCandidates
 
 
 def approach_orientations(config: GraspConfig) -> tuple[np.ndarray, np.ndarray]:
     """The candidate orientations: (O, 3, 3) gripper axes (columns x, y, z) in the grid frame, (O,) kinds."""
+    rotations, kinds = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls))
+    return rotations.copy(), kinds.copy()
+
+
+@functools.lru_cache(maxsize=8)
+def _orientations(top_yaws: int, side_yaws: int, side_rolls: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`approach_orientations`, computed once per option set (read-only arrays: the cache shares them)."""
     rotations, kinds = [], []
     down = np.array([0.0, 0.0, -1.0])
-    for i in range(config.top_yaws):
-        phi = math.pi * i / config.top_yaws
+    for i in range(top_yaws):
+        phi = math.pi * i / top_yaws
         y = np.array([math.cos(phi), math.sin(phi), 0.0])
         rotations.append(np.stack([np.cross(y, down), y, down], axis=1))
         kinds.append(0)
     up = np.array([0.0, 0.0, 1.0])
-    for j in range(config.side_yaws):
-        theta = 2.0 * math.pi * j / config.side_yaws
+    for j in range(side_yaws):
+        theta = 2.0 * math.pi * j / side_yaws
         a = np.array([math.cos(theta), math.sin(theta), 0.0])
         h = np.cross(up, a)
-        for roll in config.side_rolls:
+        for roll in side_rolls:
             psi = math.radians(float(roll))
             y = math.cos(psi) * h + math.sin(psi) * up
             rotations.append(np.stack([np.cross(y, a), y, a], axis=1))
             kinds.append(1)
-    return np.asarray(rotations, dtype=np.float64), np.asarray(kinds, dtype=np.int8)
+    rotations, kinds = np.asarray(rotations, dtype=np.float64), np.asarray(kinds, dtype=np.int8)
+    rotations.flags.writeable = kinds.flags.writeable = False
+    return rotations, kinds
 
 
 def _anchors(union: np.ndarray, points_grid: np.ndarray | None) -> np.ndarray:
@@ -43,25 +53,24 @@ def _anchors(union: np.ndarray, points_grid: np.ndarray | None) -> np.ndarray:
     anchors = [np.argwhere(surface).astype(np.float64) + 0.5]
     if points_grid is not None and len(points_grid):
         n = union.shape[0]
-        voxels = np.unique(np.floor(points_grid).astype(np.int64), axis=0)
+        voxels = np.floor(points_grid).astype(np.int64)
         voxels = voxels[np.all((voxels >= 0) & (voxels < n), axis=1)]
-        extra = voxels[~surface[tuple(voxels.T)]] if len(voxels) else voxels
-        anchors.append(extra.astype(np.float64) + 0.5)
+        # Distinct voxels in x, y, z lexicographic order: unique flat indices (row-wise unique is far slower).
+        flat = np.unique(np.ravel_multi_index(tuple(voxels.T), union.shape))
+        flat = flat[~surface.ravel()[flat]]
+        anchors.append(np.stack(np.unravel_index(flat, union.shape), axis=1).astype(np.float64) + 0.5)
     return np.concatenate(anchors, axis=0)
 
 
-def _run_through(slices: np.ndarray, centre: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(K, n, S) occupied slices -> first and last slice of each completion's run through slice ``centre``.
+def _run_through(bits: PackedGrids, slices: np.ndarray, centre: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(W, n, K) occupied-slice words -> first and last slice of each completion's run through slice ``centre``.
 
     Returns lo, hi (K, S) and whether the centre slice is occupied (K, S); lo/hi are meaningless where not.
     """
-    n = slices.shape[1]
-    empty = ~slices
-    left = empty[:, :centre + 1][:, ::-1]  # from the centre outwards to the left
-    lo = np.where(left.any(axis=1), centre + 1 - np.argmax(left, axis=1), 0)
-    right = empty[:, centre:]
-    hi = np.where(right.any(axis=1), centre + np.argmax(right, axis=1) - 1, n - 1)
-    return lo, hi, slices[:, centre]
+    # Bit s of the running AND outwards from the centre stays set while completion s's run lasts.
+    left = bits.count(np.bitwise_and.accumulate(slices[:, centre::-1], axis=1))
+    right = bits.count(np.bitwise_and.accumulate(slices[:, centre:], axis=1))
+    return centre + 1 - left, centre - 1 + right, bits.unpack(slices[:, centre])
 
 
 def generate_candidates(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
@@ -105,7 +114,7 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     dims = VoxelDims.of(config, pose.voxel_size)
     points_grid = pose.camera_to_grid(points) if points is not None else None
     anchors = _anchors(union, points_grid)
-    rotations_all, kinds_all = approach_orientations(config)
+    rotations_all, kinds_all = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls))
     if len(anchors) == 0:
         return GraspCandidates.empty()
     rng = np.random.default_rng(config.seed)
@@ -118,16 +127,16 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     approach = rot[:, :, 2]
 
     # 1. Slide along the approach until the palm (one voxel short) meets the union of the completions.
-    occupied_any = bits.occupied_in_any()
     fl, fw, ft, wmax = dims.finger_length, dims.finger_width, dims.finger_thickness, dims.max_opening
     reach = fl + dims.palm_depth
     n_u = lattice_count(reach, 1.0)
     counts = (lattice_count(fw, 1.0), lattice_count(wmax + 2 * ft, 1.0), n_u)
-    column = box_lattice_index(bits, p, rot, np.array([0.0, 0.0, -reach / 2]),
-                               np.array([fw / 2, wmax / 2 + ft, reach / 2]), counts)
-    hit_rows = occupied_any[column].any(axis=(1, 2))  # (K, n_u): u from -reach (far behind) to 0 (anchor)
-    u_values = np.linspace(-reach, 0.0, n_u)
-    first = np.where(hit_rows.any(axis=1), u_values[np.argmax(hit_rows, axis=1)], 0.0)
+    # Anchors are voxel centres: the palm's column reads voxels at offsets fixed per orientation.
+    hit_rows = voxel_box_rows(union, np.floor(p).astype(np.int64), rotations_all, orient_id,
+                              np.array([0.0, 0.0, -reach / 2]), np.array([fw / 2, wmax / 2 + ft, reach / 2]),
+                              counts)  # (n_u, K)
+    u_values = np.linspace(-reach, 0.0, n_u)  # rows: u from -reach (far behind) to 0 (anchor)
+    first = np.where(hit_rows.any(axis=0), u_values[np.argmax(hit_rows, axis=0)], 0.0)
     t = first + fl - 1.0
     # Approaching downwards: stop where the lowest gripper part would reach the support plane.
     low0 = lowest_point(p, rot, np.full(len(p), wmax), dims) - p[:, 2]  # lowest z relative to the origin
@@ -146,11 +155,10 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     # Exact half-voxel spacing (extents come in half voxels), offset by a quarter voxel so that, along grid
     # axes, samples never sit on voxel faces (anchors are voxel centres): edges are then found to +-0.25.
     ys = (np.arange(n_y) - half_n) * 0.5 + 0.25
-    sweep = box_lattice_index(bits, origins, rot, np.array([0.0, 0.25, -fl / 2]),
-                              np.array([fw / 2, half_n * 0.5, fl / 2]),
-                              (lattice_count(fw, 1.0), n_y, lattice_count(fl, 1.0)))
-    slices = bits.unpack(bits.reduce_or(bits.gather(sweep), axis=(1, 3)))  # (K, n_y, S)
-    lo, hi, has = _run_through(slices, half_n)
+    slices = box_or(bits.data, bits.padded, origins, rot, np.array([0.0, 0.25, -fl / 2]),
+                    np.array([fw / 2, half_n * 0.5, fl / 2]), (lattice_count(fw, 1.0), n_y, lattice_count(fl, 1.0)),
+                    keep=(1,))  # (W, n_y, K)
+    lo, hi, has = _run_through(bits, slices, half_n)
     extent = ys[hi] - ys[lo] + 0.5
     fits = has & (lo > 0) & (hi < n_y - 1) & (extent + 2 * dims.clearance <= wmax + 1e-9)
     ok = fits.any(axis=1)

@@ -12,12 +12,17 @@ import numpy as np
 
 from pssnet_core.grasps.config import VoxelDims
 
+# Lattice points per block of candidates (by timing): candidates are the innermost, contiguous axis, so a block
+# must hold enough of them for long vector loops, yet its temporaries (a few MB) should stay in cache.
+_BLOCK_POINTS = 1 << 17
+
 
 class PackedGrids:
-    """S occupancy grids packed into one little-endian bit word per voxel (bit s = completion s).
+    """S occupancy grids packed into bit words: bit ``s % 64`` of word ``s // 64`` is completion s.
 
-    The grid is padded by one empty voxel on every side; lattice points are clipped into the padded grid,
-    so every point outside the grid reads as empty.
+    ``data`` is (W, P^3), the flat padded grid of each word (W = 1 up to 64 completions, with the narrowest
+    unsigned type that holds S bits). The grid is padded by one empty voxel on every side; lattice points are
+    clipped into the padded grid, so every point outside the grid reads as empty.
     """
 
     def __init__(self, occupancy: np.ndarray) -> None:
@@ -25,59 +30,32 @@ class PackedGrids:
         self.num = s
         self.size = n
         self.padded = n + 2
-        nbytes = (s + 7) // 8
-        packed = np.packbits(np.moveaxis(occupancy, 0, -1), axis=-1, bitorder="little")  # (n, n, n, nbytes)
-        if nbytes <= 8:
-            width = next(b for b in (1, 2, 4, 8) if b >= nbytes)
-            self.words = 1
-        else:
-            width = 8 * ((nbytes + 7) // 8)
-            self.words = width // 8
-        self.nbytes = width
-        data = np.zeros((self.padded,) * 3 + (width,), dtype=np.uint8)
-        data[1:-1, 1:-1, 1:-1, :nbytes] = packed
-        dtype = np.dtype(f"<u{min(width, 8)}")
-        flat = data.reshape(-1, width).view(dtype)  # (P^3, words)
-        self.data = flat[:, 0].copy() if self.words == 1 else flat.copy()
-
-    def occupied_in_any(self) -> np.ndarray:
-        """(P^3,) bool over the flat padded grid: the voxel is occupied in at least one completion."""
-        return self.data != 0 if self.words == 1 else (self.data != 0).any(axis=1)
-
-    def gather(self, index: np.ndarray) -> np.ndarray:
-        """Words at flat padded-grid indices: shape (...) or (..., words)."""
-        return self.data[index]
-
-    def reduce_or(self, words: np.ndarray, axis: int | tuple[int, ...]) -> np.ndarray:
-        return np.bitwise_or.reduce(words, axis=axis)
-
-    def bit_at(self, words: np.ndarray, slice_index: np.ndarray) -> np.ndarray:
-        """Bit s of ``words[k, :, slice_index[k, s], :]`` for every completion s.
-
-        Args:
-            words: (K, nx, ny, nz) or (K, nx, ny, nz, W) words.
-            slice_index: (K, S) index along axis 2 per completion.
-
-        Returns:
-            (K, S, nx, nz) bool.
-        """
-        k = words.shape[0]
-        s = np.arange(self.num)
-        picked = words[np.arange(k)[:, None], :, slice_index]  # (K, S, nx, nz[, W])
-        if self.words > 1:
-            picked = np.take_along_axis(picked, (s // 64)[None, :, None, None, None], axis=-1)[..., 0]
-            shift = (s % 64).astype(np.uint64)
-        else:
-            shift = s.astype(picked.dtype)
-        return ((picked >> shift[None, :, None, None]) & 1).astype(bool)
+        words = (s + 63) // 64
+        dtype = np.dtype(f"<u{next(b for b in (1, 2, 4, 8) if 8 * b >= s) if words == 1 else 8}")
+        data = np.zeros((words, self.padded, self.padded, self.padded), dtype)
+        inner = data[:, 1:-1, 1:-1, 1:-1]
+        bit = np.empty((n, n, n), dtype)
+        for i in range(s):  # one shift and OR per completion: contiguous passes (packbits across S is strided)
+            np.left_shift(occupancy[i], i % 64, out=bit, dtype=dtype)
+            inner[i // 64] |= bit
+        self.data = data.reshape(words, -1)
 
     def unpack(self, words: np.ndarray) -> np.ndarray:
-        """Words (...) or (..., words) -> (..., S) bool."""
-        words = np.ascontiguousarray(words)
-        if self.words == 1:
-            words = words[..., None]
-        raw = words.view(np.uint8)
-        return np.unpackbits(raw, axis=-1, bitorder="little")[..., :self.num].astype(bool)
+        """Words (W, ...) -> (..., S) bool."""
+        raw = np.ascontiguousarray(np.moveaxis(words, 0, -1)).view(np.uint8)
+        return np.unpackbits(raw, axis=-1, bitorder="little")[..., :self.num].view(bool)
+
+    def count(self, words: np.ndarray) -> np.ndarray:
+        """Words (W, C, ...) -> (..., S): in how many of the C words bit s is set."""
+        raw = np.ascontiguousarray(np.moveaxis(words, 0, -1)).view(np.uint8)
+        flags = np.unpackbits(raw, axis=-1, bitorder="little")  # contiguous: a fast sum over C
+        return np.add.reduce(flags, axis=0, dtype=np.min_scalar_type(words.shape[1]))[..., :self.num].astype(np.intp)
+
+    def pack(self, flags: np.ndarray) -> np.ndarray:
+        """(..., S) bool -> words (W, ...), the inverse of :meth:`unpack`."""
+        raw = np.packbits(flags, axis=-1, bitorder="little")
+        raw = np.pad(raw, [(0, 0)] * (raw.ndim - 1) + [(0, len(self.data) * self.data.itemsize - raw.shape[-1])])
+        return np.moveaxis(np.ascontiguousarray(raw).view(self.data.dtype), -1, 0)
 
 
 def _lattice(n: int) -> np.ndarray:
@@ -90,41 +68,129 @@ def lattice_count(extent: float, step: float) -> int:
     return int(math.ceil(extent / step - 1e-6)) + 1 if extent > 0 else 1
 
 
-def box_lattice_index(bits: PackedGrids, origins: np.ndarray, rotations: np.ndarray, centre: np.ndarray,
-                      half: np.ndarray, counts: tuple[int, int, int]) -> np.ndarray:
-    """Flat padded-grid indices of a box's lattice points (per candidate centre/half extents, gripper frame).
+def _box_terms(rotations: np.ndarray, centre: np.ndarray, half: np.ndarray,
+               counts: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The origin-free float32 terms of every lattice point's grid coordinates.
+
+    Padded-grid axis c of point (i, j, l) of box k at ``origin`` is ``xy[c, i, j, k] + (z[c, l, k] + base_c)``
+    with ``xy = x_i r_c0 + y_j r_c1``, ``z = z_l r_c2`` and ``base = origin + 1`` (the padding layer, so that
+    floor == truncation inside the padded grid): always summed in this order, in float32, so that a point falls
+    in the same voxel whichever way the lattice is traversed.
+
+    Returns:
+        xy (3, nx, ny, K) and z (3, nz, K).
+    """
+    k = len(rotations)
+    centre = np.broadcast_to(np.asarray(centre, np.float32), (k, 3))
+    half = np.broadcast_to(np.asarray(half, np.float32), (k, 3))
+    rot = rotations.astype(np.float32)
+    local = [centre[:, a, None] + _lattice(counts[a])[None, :] * half[:, a, None] for a in range(3)]  # (K, n_a)
+    xy = np.empty((3, counts[0], counts[1], k), np.float32)
+    z = np.empty((3, counts[2], k), np.float32)
+    for c in range(3):
+        np.add((local[0] * rot[:, c, 0, None]).T[:, None, :], (local[1] * rot[:, c, 1, None]).T[None, :, :],
+               out=xy[c])
+        z[c] = (local[2] * rot[:, c, 2, None]).T
+    return xy, z
+
+
+def box_or(table: np.ndarray, padded: int, origins: np.ndarray, rotations: np.ndarray, centre: np.ndarray,
+           half: np.ndarray, counts: tuple[int, int, int], keep: tuple[int, ...]) -> np.ndarray:
+    """OR of ``table`` over each box's lattice points (gripper frame), over the lattice axes not in ``keep``.
 
     Args:
-        bits: the packed grids (for the padded size).
+        table: (W, P^3) words (or bool) over the flat padded grid, e.g. :attr:`PackedGrids.data`.
+        padded: P, the padded grid size.
         origins: (K, 3) gripper origins (grid).
         rotations: (K, 3, 3) gripper axes as columns (grid).
         centre: (K, 3) or (3,) box centre in the gripper frame.
         half: (K, 3) or (3,) half extents in the gripper frame.
         counts: lattice points along the gripper x, y, z.
+        keep: lattice axes (0 = x, 1 = y, 2 = z) not reduced, in the order they have in the result.
 
     Returns:
-        (K, nx, ny, nz) int32 indices; points outside the grid map to an empty padding voxel.
+        (W, *(counts[a] for a in keep), K) words; points outside the grid read as empty.
     """
     k = len(origins)
-    centre = np.broadcast_to(np.asarray(centre, np.float32), (k, 3))
-    half = np.broadcast_to(np.asarray(half, np.float32), (k, 3))
-    rot = rotations.astype(np.float32)
-    # +1: the padding layer, so that floor == truncation for every point inside the padded grid.
-    base = origins.astype(np.float32) + np.float32(1.0)
-    local = [centre[:, a, None] + _lattice(counts[a])[None, :] * half[:, a, None] for a in range(3)]  # (K, n_a)
-    p = bits.padded
-    hi = np.float32(p - 1)
-    index = np.zeros((k, *counts), dtype=np.int32)
-    coord = np.empty((k, *counts), dtype=np.float32)
-    for c, stride in enumerate((p * p, p, 1)):
-        tx = local[0] * rot[:, c, 0, None]
-        ty = local[1] * rot[:, c, 1, None]
-        tz = local[2] * rot[:, c, 2, None] + base[:, c, None]
-        np.add(tx[:, :, None, None], ty[:, None, :, None], out=coord)
-        coord += tz[:, None, None, :]
+    xy, z = _box_terms(rotations, centre, half, counts)
+    z += (origins.astype(np.float32) + np.float32(1.0)).T[:, None, :]
+    reduced = tuple(a for a in range(3) if a not in keep)
+    order = (0, *(1 + a for a in reduced + keep), 4)  # (component, lattice axes: reduced first, candidates)
+    xy = xy[:, :, :, None, :].transpose(order)
+    z = z[:, None, None, :, :].transpose(order)
+    out = np.empty((len(table), *(counts[a] for a in keep), k), table.dtype)
+    hi = np.float32(padded - 1)
+    block = max(1, _BLOCK_POINTS // math.prod(counts))
+    for start in range(0, k, block):
+        part = slice(start, start + block)
+        coord = np.add(xy[..., part], z[..., part])  # (3, *lattice, b)
         np.clip(coord, np.float32(0.0), hi, out=coord)
-        index += coord.astype(np.int32) * np.int32(stride)
-    return index
+        voxel = coord.astype(np.int32)  # truncation == floor: clipped to >= 0
+        index = voxel[0] * np.int32(padded * padded)
+        index += voxel[1] * np.int32(padded)
+        index += voxel[2]
+        for w, words in enumerate(table):
+            picked = words.take(index)
+            if reduced:
+                picked = np.bitwise_or.reduce(picked.reshape(-1, *picked.shape[len(reduced):]), axis=0)
+            out[w, ..., part] = picked
+    return out
+
+
+def voxel_box_rows(grid: np.ndarray, voxels: np.ndarray, rotations: np.ndarray, orientation: np.ndarray,
+                   centre: np.ndarray, half: np.ndarray, counts: tuple[int, int, int]) -> np.ndarray:
+    """``box_or(..., keep=(2,))`` of a bool grid for boxes whose origins are voxel centres, exactly.
+
+    A box at the centre of voxel v reads voxel ``v + offset(rotation, point)`` at each lattice point, unless the
+    point lies within float32 rounding of a voxel face: so offsets are computed once per orientation and a point
+    costs one add and one gather. Points that close to a face (a few per orientation) are placed box by box
+    with the float32 sums of :func:`box_or`.
+
+    Args:
+        grid: (N, N, N) bool.
+        voxels: (K, 3) int voxel of each origin (the origin is ``voxels + 0.5``).
+        rotations: (O, 3, 3) the distinct orientations.
+        orientation: (K,) index into ``rotations`` of each box.
+        centre, half, counts: the box, as :func:`box_or` (the same for every box).
+
+    Returns:
+        (counts[2], K) bool: the box's x-y layer at each lattice z meets the grid.
+    """
+    n, k, o_count = grid.shape[0], len(voxels), len(rotations)
+    xy, z = _box_terms(rotations, centre, half, counts)
+    # Rows of lattice points: (3, O, nz, nx * ny), the layout of the gathers below.
+    xy = np.broadcast_to(xy.transpose(0, 3, 1, 2)[:, :, None], (3, o_count, counts[2], counts[0], counts[1]))
+    xy = xy.reshape(3, o_count, counts[2], -1)
+    z = np.broadcast_to(z.transpose(0, 2, 1)[..., None], xy.shape)
+    # Exact padded coordinate minus the voxel index (+1 padding, +0.5 voxel centre); float64 holds the sum.
+    d = xy.astype(np.float64) + z + 1.5
+    step = np.floor(d)
+    # The float32 sums round twice, each by at most half an ulp of the largest magnitude they reach.
+    largest = n + 2.0 + float(np.abs(xy).max() + np.abs(z).max())
+    tolerance = 2.0 ** (math.ceil(math.log2(largest)) - 21)  # four of those ulps
+    near = (np.minimum(d - step, step + 1.0 - d) <= tolerance).any(axis=0)  # (O, nz, nx * ny)
+    # Voxels of a copy of the grid with a margin no point leaves (empty, as the padding reads); +1: a point
+    # near a face may fall one voxel either side of its offset.
+    offset = step.astype(np.int64) - 1
+    margin = int(max(-offset.min(), offset.max(), 0)) + 1
+    size = n + 2 * margin
+    table = np.zeros((size,) * 3, bool)
+    table[margin:margin + n, margin:margin + n, margin:margin + n] = grid
+    table = table.ravel()
+    strides = np.array([size * size, size, 1])
+    flat = np.einsum("c,c...->...", strides, offset).astype(np.int32)  # (O, nz, nx * ny)
+    start = ((voxels + margin) @ strides).astype(np.int32)
+    base = (voxels + 0.5).astype(np.float32) + np.float32(1.0)  # as box_or's origin + padding
+    out = np.empty((counts[2], k), bool)
+    for o in range(o_count):
+        boxes = np.flatnonzero(orientation == o)
+        index = start[boxes, None, None] + flat[o]  # (b, nz, nx * ny)
+        rows, points = np.nonzero(near[o])
+        if len(rows):
+            coord = xy[:, o, rows, points][:, None] + (z[:, o, rows, points][:, None] + base[boxes].T[..., None])
+            index[:, rows, points] = np.einsum("c,cbp->bp", strides, np.floor(coord).astype(np.int64) - 1 + margin)
+        out[:, boxes] = table.take(index).any(axis=2).T
+    return out
 
 
 def lowest_point(origins: np.ndarray, rotations: np.ndarray, widths: np.ndarray, dims: VoxelDims) -> np.ndarray:

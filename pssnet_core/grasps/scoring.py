@@ -9,17 +9,20 @@ import numpy as np
 from pssnet_core.geometry import GridPose
 from pssnet_core.grasps.config import GraspConfig, VoxelDims
 from pssnet_core.grasps.inputs import check_occupancy
-from pssnet_core.grasps.lattice import PackedGrids, box_lattice_index, lattice_count, lowest_point
+from pssnet_core.grasps.lattice import PackedGrids, box_or, lattice_count, lowest_point
 from pssnet_core.grasps.results import GraspCandidates
 
 
-def _extents(slices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(..., n, S) occupied slices -> first, last occupied slice and whether any, each (..., S)."""
-    has = slices.any(axis=-2)
-    n = slices.shape[-2]
-    lo = np.argmax(slices, axis=-2)
-    hi = n - 1 - np.argmax(slices[..., ::-1, :], axis=-2)
-    return lo, hi, has
+def _extents(bits: PackedGrids, slices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(W, n, K) occupied-slice words -> first, last occupied slice and whether any, each (K, S).
+
+    First and last are meaningless where there is none.
+    """
+    n = slices.shape[1]
+    # Bit s of the running AND of the complements stays set while completion s has no object yet.
+    before = bits.count(np.bitwise_and.accumulate(~slices, axis=1))
+    after = bits.count(np.bitwise_and.accumulate(~slices[:, ::-1], axis=1))
+    return before, n - 1 - after, before < n
 
 
 @dataclass
@@ -82,34 +85,36 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
 
     # Closing region: the object's extent along the closing axis, and which pad cells face object.
     n_y = lattice_count(wmax, 1.0)
-    closing = bits.gather(box_lattice_index(bits, origins, rot, np.array([0.0, 0.0, -fl / 2]),
-                                            np.stack([np.full(k, fw / 2), widths / 2, np.full(k, fl / 2)], axis=1),
-                                            (nx, n_y, nz)))
-    slices = bits.unpack(bits.reduce_or(closing, axis=(1, 3)))  # (K, n_y, S)
-    lo, hi, has = _extents(slices)
+    closing = box_or(bits.data, bits.padded, origins, rot, np.array([0.0, 0.0, -fl / 2]),
+                     np.stack([np.full(k, fw / 2), widths / 2, np.full(k, fl / 2)], axis=1), (nx, n_y, nz),
+                     keep=(1, 0, 2)).reshape(len(bits.data), n_y, nx * nz, k)  # (W, n_y, pad cells, K)
+    lo, hi, has = _extents(bits, np.bitwise_or.reduce(closing, axis=2))
     extent = (hi - lo + 1) * (widths / (n_y - 1))[:, None]
     contains = has & (extent >= dims.min_object_width - 1e-9)
     # Pad contact: closing each finger until it touches completion s (slice lo / hi), the pad cells whose
-    # column meets object within one voxel of that first touch. Prefix ORs along y give "object at or before
-    # this slice" per cell for all completions at once; then bit s is read at completion s's touch slice.
+    # column meets object within one voxel of that first touch, i.e. at or before slice reach[k, s]. For all
+    # completions at once: OR over slices i of the words masked to the completions with reach >= i, then bit s
+    # of a cell's OR says whether it touches in completion s.
     tol = np.ceil(1.0 / (widths / (n_y - 1)) - 1e-9).astype(np.int64)[:, None]  # slices in one voxel
+    slice_index = np.arange(n_y)[:, None, None]
     coverage = np.zeros((k, s))
-    for words, touch in ((closing, lo), (closing[:, :, ::-1], n_y - 1 - hi)):
-        prefix = np.bitwise_or.accumulate(words, axis=2)
-        coverage += bits.bit_at(prefix, np.clip(touch + tol, 0, n_y - 1)).mean(axis=(2, 3))
+    for words, touch in ((closing, lo), (closing[:, ::-1], n_y - 1 - hi)):
+        reach = bits.pack(np.clip(touch + tol, 0, n_y - 1)[None] >= slice_index)  # (W, n_y, K)
+        touching = np.bitwise_or.reduce(words & reach[:, :, None, :], axis=1)  # (W, pad cells, K)
+        coverage += bits.count(touching) / (nx * nz)
     coverage = np.where(has, coverage / 2.0, 0.0)
 
     # Fingers and palm.
     finger_hit = np.zeros((k, s), dtype=bool)
     for sign in (-1.0, 1.0):
         centre = np.stack([np.zeros(k), sign * (widths / 2 + ft / 2), np.full(k, -fl / 2)], axis=1)
-        words = bits.gather(box_lattice_index(bits, origins, rot, centre, np.array([fw / 2, ft / 2, fl / 2]),
-                                              (nx, lattice_count(ft, 1.0), nz)))
-        finger_hit |= bits.unpack(bits.reduce_or(words, axis=(1, 2, 3)))
-    palm = bits.gather(box_lattice_index(bits, origins, rot, np.array([0.0, 0.0, -fl - dims.palm_depth / 2]),
-                                         np.array([fw / 2, wmax / 2 + ft, dims.palm_depth / 2]),
-                                         (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0))))
-    palm_hit = bits.unpack(bits.reduce_or(palm, axis=(1, 2, 3)))
+        finger_hit |= bits.unpack(box_or(bits.data, bits.padded, origins, rot, centre,
+                                         np.array([fw / 2, ft / 2, fl / 2]), (nx, lattice_count(ft, 1.0), nz),
+                                         keep=()))
+    palm_hit = bits.unpack(box_or(bits.data, bits.padded, origins, rot, np.array([0.0, 0.0, -fl - dims.palm_depth / 2]),
+                                  np.array([fw / 2, wmax / 2 + ft, dims.palm_depth / 2]),
+                                  (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0)),
+                                  keep=()))
     return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage)
 
 
