@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import io
+import json
 import statistics
 import subprocess
 import sys
@@ -131,7 +132,9 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=21)
     parser.add_argument("--sizes", type=int, nargs="+", default=[32, 64])
     parser.add_argument("--baseline", metavar="REV", help="also time the grasp package at this git revision")
+    parser.add_argument("--json", type=Path, default=None, help="also write the current code's numbers here")
     args = parser.parse_args()
+    numbers: dict[str, dict[str, float]] = {}
     print(f"CPU: {cpu_description()}; single thread")
     with tempfile.TemporaryDirectory() as tmp:
         versions = {"current": current}
@@ -156,9 +159,14 @@ def main() -> int:
                       f"{both[:, 0].min():8.1f}   {np.median(both[:, 1]):8.1f} {both[:, 1].min():8.1f}   "
                       f"({args.candidates} x {args.completions} scored, {generated} generated"
                       + (f"; target <= {TARGET_MS:.0f} ms (CPU median) {verdict})" if size == 32 else ")"))
+            numbers[str(size)] = {f"{call}_ms": float(np.median(times[("current", call)][:, 1]))
+                                  for call in fns["current"]}
             if args.baseline:
                 ranked = [fns[version]["plan_grasps"]() for version in fns]
                 print(f"{size:>4}^3 same ranked grasps as the baseline: {same_grasps(*ranked)}")
+    if args.json:  # CPU-time medians, as the target is judged
+        args.json.write_text(json.dumps({"candidates": args.candidates, "completions": args.completions,
+                                         "sizes": numbers}, indent=2))
     return 0
 
 
