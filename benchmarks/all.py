@@ -80,10 +80,9 @@ def measure(args: argparse.Namespace, tmp: Path) -> dict[str, float | str]:
                                           "--checkpoint32", str(SHIPPED_MODEL)]),
         "grasps": ("grasp_bench", ["--sizes", "32", "--repeats", repeats]),
         "service": ("service_bench", ["--calls", "20" if args.quick else "100",
-                                      "--seconds", "5" if args.quick else "10",
-                                      "--stage-calls", "10" if args.quick else "30"]),
+                                      "--seconds", "5" if args.quick else "10"]),
         "plausible": ("plausible_bench", (["--data", args.plausible_data] if args.plausible_data else
-                                          ["--synthetic-mugs", "2", "--views", "36"])
+                                          ["--synthetic-mugs", "4", "--views", "72"])
                       + ["--references", "4" if args.quick else "8", "--workers", "2"]),
     }
     for name, (script, script_args) in steps.items():

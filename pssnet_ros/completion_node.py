@@ -408,8 +408,10 @@ class CompletionNode(LifecycleNode):
         fill_response(response, result, header)
         self._health.completed(time.perf_counter() - t0)
         points = sum(len(c) for c in result.completions)
+        ms = {name: seconds * 1000 for name, seconds in result.timings.items()}
         response.message = (f"{result.num_samples} samples, {points} voxels, {len(response.grasps.poses)} grasps, seed "
-                            f"{result.seed}, {(time.perf_counter() - t0) * 1000:.0f} ms")
+                            f"{result.seed}, {(time.perf_counter() - t0) * 1000:.0f} ms (observation "
+                            f"{ms['observe']:.1f}, network {ms['network']:.1f}, grasps {ms['grasps']:.1f} ms)")
         return response
 
     def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

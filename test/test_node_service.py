@@ -71,7 +71,8 @@ def test_round_trip_returns_completions_in_the_request_frame(ros, service, scene
     header = stamped_header(1234, 5678)
     response = call(ros, service, make_request(scene, header, num_samples=5))
     assert response.success, response.message
-    assert re.match(r"5 samples, \d+ voxels, 0 grasps, seed 0, \d+ ms", response.message)
+    assert re.fullmatch(r"5 samples, \d+ voxels, 0 grasps, seed 0, \d+ ms \(observation [\d.]+, network [\d.]+, "
+                        r"grasps 0\.0 ms\)", response.message), response.message
     assert response.header.frame_id == "camera_depth_optical_frame"
     assert (response.header.stamp.sec, response.header.stamp.nanosec) == (1234, 5678)
     assert response.voxel_size > 0 and len(response.completions) == 5
