@@ -549,16 +549,25 @@ def carve_free_space(depth: np.ndarray, usable: np.ndarray, intrinsics: CameraIn
     nearest = max(float(z.min()), 1e-3)
     radius = int(np.ceil(intrinsics.fx * half_diagonal / nearest))
     radius = min(radius, 8)  # the footprint of a voxel closer than ~fx*r/8 m; bounded to keep this cheap
-    blocked = np.where(usable, depth, 0.0).astype(np.float32)
-    kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
-    nearest_reading = cv2.erode(blocked, kernel, borderType=cv2.BORDER_REPLICATE)  # windowed minimum
     in_front = z > 1e-3
     inv_z = np.float32(1.0) / np.where(in_front, z, np.float32(1.0))
     u = np.rint(np.float32(intrinsics.fx) * x * inv_z + np.float32(intrinsics.cx))
     v = np.rint(np.float32(intrinsics.fy) * y * inv_z + np.float32(intrinsics.cy))
     in_image = in_front & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+    if not in_image.any():
+        return np.zeros((pose.size,) * 3, dtype=bool)
+    # The windowed minimum only where voxels project, plus the window's reach: every window of a projected pixel
+    # lies inside this crop, so the crop's edges never enter a result (where they are the image's own edges,
+    # the replicated border is the same as on the whole image).
+    u_in, v_in = u[in_image].astype(np.int64), v[in_image].astype(np.int64)
+    u0, u1 = max(int(u_in.min()) - radius, 0), min(int(u_in.max()) + radius + 1, intrinsics.width)
+    v0, v1 = max(int(v_in.min()) - radius, 0), min(int(v_in.max()) + radius + 1, intrinsics.height)
+    blocked = np.where(usable[v0:v1, u0:u1], depth[v0:v1, u0:u1], 0.0).astype(np.float32)
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
+    nearest_reading = cv2.erode(blocked, kernel, borderType=cv2.BORDER_REPLICATE)  # windowed minimum
     # The pixel index in int64: float32 holds integers exactly only up to 2**24, fewer pixels than a 4200 x 4200 image.
-    flat = np.where(in_image, v.astype(np.int64) * intrinsics.width + u.astype(np.int64), 0)
+    flat = np.zeros(z.shape, dtype=np.int64)
+    flat[in_image] = (v_in - v0) * (u1 - u0) + (u_in - u0)
     free = in_image & (z + np.float32(half_diagonal) < nearest_reading.reshape(-1)[flat])
     return free.reshape(pose.size, pose.size, pose.size)
 

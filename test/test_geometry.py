@@ -162,6 +162,38 @@ def test_unknown_pixels_carve_nothing():
     assert not np.any(partial.known_free & ~full.known_free)
 
 
+@pytest.mark.parametrize("column", [70, 140])  # 140: the object at the image's right edge, the grid beyond it
+def test_free_space_is_the_windowed_minimum_over_the_whole_image(column):
+    """carve_free_space erodes only the part of the image the grid projects to: the same voxels as the
+    definition on the whole image (scipy's minimum filter, replicated border)."""
+    from scipy import ndimage
+
+    from pssnet_core.geometry import carve_free_space, valid_depth
+
+    depth = np.full((K.height, K.width), 0.6, dtype=np.float32)
+    mask = np.zeros(depth.shape, dtype=np.uint8)
+    mask[50:70, column:column + 20] = 1
+    depth[mask == 1] = 0.55
+    depth[::13, ::17] = 0.0  # holes: missing readings count as distance 0
+    pose = place_grid(masked_points(depth, mask, K), UP, GridConfig(size=16, voxel_size=0.01))
+    usable = valid_depth(depth)
+    free = carve_free_space(depth, usable, K, pose)
+
+    centres = pose.all_centres()
+    z = centres[:, 2]
+    half_diagonal = 0.5 * np.sqrt(3.0) * pose.voxel_size
+    radius = min(int(np.ceil(K.fx * half_diagonal / max(z.min(), 1e-3))), 8)
+    nearest = ndimage.minimum_filter(np.where(usable, depth, 0.0), size=2 * radius + 1, mode="nearest")
+    u = np.rint(K.fx * centres[:, 0] / z + K.cx).astype(int)
+    v = np.rint(K.fy * centres[:, 1] / z + K.cy).astype(int)
+    inside = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
+    assert inside.all() if column == 70 else 0 < inside.sum() < len(z)
+    expected = np.zeros(len(z), dtype=bool)
+    expected[inside] = z[inside] + half_diagonal < nearest[v[inside], u[inside]]
+    assert expected.sum() > 100
+    np.testing.assert_array_equal(free.reshape(-1), expected)
+
+
 @pytest.mark.parametrize("size", [32, 64])
 def test_grid_sizes(size):
     depth, mask = wall_scene()
