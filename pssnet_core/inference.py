@@ -152,7 +152,8 @@ class Completer:
         if tuple(array.shape) != (2, n, n, n):
             raise CompletionInputError(f"network input must have shape (2, {n}, {n}, {n}) for this "
                                        f"{n}^3 model, got {tuple(array.shape)}")
-        if not torch.isfinite(array).all():
+        # numpy: one serial pass; torch's isfinite().all() is five parallel ones (~0.1 vs 35 ms median when busy).
+        if not np.isfinite(array.numpy()).all():
             raise CompletionInputError("network input contains NaN or inf")
         return array[None]
 

@@ -80,6 +80,10 @@ class VAE(CompletionModel):
         """Occupancy logits (B,1,N,N,N)."""
         return self.decoder(z)
 
+    def decode_probabilities(self, z: torch.Tensor) -> torch.Tensor:
+        """Occupancy probabilities (B,1,N,N,N), fp32: sigmoid(decode(z)), fused without autograd on the CPU."""
+        return self.decoder.probabilities(z)
+
     def _vae_forward(self, x: torch.Tensor, ctx: StepContext
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         with ctx.autocast():
@@ -115,7 +119,7 @@ class VAE(CompletionModel):
         t = check_box_temperature(box_temperature, self.box_dim > 0)
         mu, logvar = self.encode(self.check_input(x))  # encoder once
         z = self.sample_latents(mu, logvar, num_samples, generator, t)
-        return torch.sigmoid(self.decode(z).float())  # decoder on all latents in one batch
+        return self.decode_probabilities(z)  # decoder on all latents in one batch
 
     def sample_latents(self, mu: torch.Tensor, logvar: torch.Tensor, num_samples: int,
                        generator: torch.Generator | None, box_temperature: float) -> torch.Tensor:
