@@ -117,8 +117,8 @@ def blocks_to_grid(rows: torch.Tensor, batch: int, size: tuple[int, int, int], s
 def grid_order(side: int, stages: int) -> torch.Tensor:
     """(N^3,) int64: for each voxel of one (N, N, N) grid in spatial order, its row in block order
     (see :func:`blocks_to_grid`), N = side * 2**stages."""
-    rows = torch.arange((side * 2**stages) ** 3, dtype=torch.float64).view(-1, 1)
-    return blocks_to_grid(rows, 1, (side,) * 3, stages).reshape(-1).long()
+    rows = torch.arange((side * 2**stages) ** 3).view(-1, 1)
+    return blocks_to_grid(rows, 1, (side,) * 3, stages).reshape(-1)
 
 
 # ------------------------------------------------------------------------------ fused inference (oneDNN)
@@ -203,13 +203,13 @@ class Encoder3D(nn.Module):
         self.dense = nn.Linear(width * self.side**3, out_features)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if fused_inference_applies(x):
-            return self._fused_forward(x)
+        convs = [m for m in self.conv if not isinstance(m, nn.ReLU)]
+        if fused_inference_applies(x) and all(isinstance(m, BlockConv3d) for m in convs):
+            return self._fused_forward(x, convs)
         return self.dense(self.conv(x).flatten(1))
 
-    def _fused_forward(self, x: torch.Tensor) -> torch.Tensor:
+    def _fused_forward(self, x: torch.Tensor, convs: list[BlockConv3d]) -> torch.Tensor:
         """The same function without autograd: each stage one fused oneDNN matmul (+ bias + ReLU)."""
-        convs = [m for m in self.conv if isinstance(m, BlockConv3d)]
 
         def weights() -> list[tuple[torch.Tensor, torch.Tensor | None]]:
             # The dense layer reads the last grid voxel-major ([voxel, C]), as the stages emit it.
@@ -264,9 +264,9 @@ class Decoder3D(nn.Module):
         """sigmoid(self(z)), (B, 1, N, N, N). Without autograd on the CPU in fp32 (``sample``'s case): each
         stage one fused oneDNN matmul (+ bias + ReLU, the last + sigmoid) in block order, and one gather into
         spatial order."""
-        if not fused_inference_applies(z):
+        layers = [m for m in self.deconv if not isinstance(m, nn.ReLU)]
+        if not (fused_inference_applies(z) and all(isinstance(m, BlockDeconv3d) for m in layers)):
             return torch.sigmoid(self(z).float())
-        layers = [m for m in self.deconv if isinstance(m, BlockDeconv3d)]
 
         def weights() -> list[tuple[torch.Tensor, torch.Tensor | None]]:
             # Dense outputs reordered from [C, voxel] to [voxel, C]: its (B, b^3 * C) output then is the first
