@@ -53,7 +53,7 @@ from torch import nn
 from pssnet_core.models import build_model, default_config
 from pssnet_core.models.base import cpu_has_fast_bf16
 from pssnet_core.models.checkpoint import load_checkpoint
-from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d, to_memory_format
+from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d, single_thread, to_memory_format
 from pssnet_core.models.vae import VAE
 
 Fn = Callable[[], Any]
@@ -223,8 +223,11 @@ class SampleNet(nn.Module):
 
     def forward(self, x: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
         enc = self.model.encoder
-        encoded = enc(x) if self.fused else enc.dense(enc.conv(x).flatten(1))
-        mu, logvar = self.model._posterior(encoded)
+        if self.fused:
+            with single_thread():  # as VAE.sample runs one input's encoder
+                mu, logvar = self.model._posterior(enc(x))
+        else:
+            mu, logvar = self.model._posterior(enc.dense(enc.conv(x).flatten(1)))
         z = mu + torch.exp(0.5 * logvar) * eps
         if self.fused:
             return self.model.decode_probabilities(z)

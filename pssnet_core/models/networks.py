@@ -218,13 +218,9 @@ class Encoder3D(nn.Module):
                     + [(dense.transpose(1, 2).reshape(self.dense.out_features, -1), self.dense.bias)])
 
         *stages, dense = packed_linears(self, weights)
-        # One input (sampling) is ~60 MMAC: on one thread, no stage waits for a second one to be scheduled,
-        # which on a busy 2-core machine cost more than the parallel GEMMs save (9 vs 60 ms median,
-        # 3.9 vs 5.0 ms best, BENCHMARKS.md "Inference").
-        with single_thread() if x.shape[0] == 1 else contextlib.nullcontext():
-            for conv, stage in zip(convs, stages, strict=True):
-                x = conv.to_grid(stage(conv.blocks(x), "relu"), x)
-            return dense(x.permute(0, 2, 3, 4, 1).reshape(x.shape[0], -1))
+        for conv, stage in zip(convs, stages, strict=True):
+            x = conv.to_grid(stage(conv.blocks(x), "relu"), x)
+        return dense(x.permute(0, 2, 3, 4, 1).reshape(x.shape[0], -1))
 
 
 class Decoder3D(nn.Module):
