@@ -6,7 +6,9 @@
 
 The encoder runs once per call and the decoder once on all latents in one batch, under
 ``torch.inference_mode``. The fast path (``fast=True``) uses channels_last_3d weights and, where the
-hardware runs bf16 natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), bf16 autocast; elsewhere fp32.
+hardware runs bf16 natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), bf16 autocast; elsewhere fp32. In fp32 on
+the CPU (either setting) sampling runs fused oneDNN matmuls (``Decoder3D.probabilities``), equal to the
+plain layers up to fp32 rounding.
 
 This module imports only torch/numpy (+ PyYAML via the configs): no open3d, cv2, trimesh or rclpy, so it
 also runs on the GPU training machine. Observations are taken by duck typing (``.network_input()``).
