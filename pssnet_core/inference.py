@@ -73,7 +73,8 @@ class Completer:
         config: its config.
         device: "cpu" or "cuda".
         threads: torch CPU threads to use (process-wide setting); None leaves torch's default.
-        fast: channels_last_3d + bf16 autocast where native; False = plain fp32 eager (reference).
+        fast: channels_last_3d + bf16 autocast where native; False = default layout in fp32 (the reference for
+            bf16; fp32 sampling on the CPU runs the fused oneDNN path either way).
         info: checkpoint metadata (``extra``), kept for callers.
         box_temperature: default factor on the posterior sigma of the box latent dims (PSSNet; 1.0 = the
             trained posterior); :meth:`complete` may override it per call. :meth:`from_checkpoint` takes the
