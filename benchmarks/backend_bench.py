@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/backend_bench.py --peak
     .venv/bin/python benchmarks/backend_bench.py --stages [--grids 32 64] [--samples 20] [--repeats 20]
     .venv/bin/python benchmarks/backend_bench.py --backends [--grids 32 64] [--samples 20] [--repeats 20]
-        [--checkpoint32 PATH] [--int8] [--views 24]
+        [--checkpoint32 PATH] [--int8] [--views 24] [--variants SUBSTRING ...]
 
 ``--peak``: the fp32 limit, as the best of a 2048^3 torch matmul (MKL) and, when installed, the same matmul
 in ONNX Runtime (MLAS) and OpenVINO (oneDNN); plus the nominal FMA peak from the clock in /proc/cpuinfo.
@@ -15,8 +15,10 @@ as the GEMM on voxel rows in block order (what Decoder3D runs: no shuffle betwee
 and % of the measured peak.
 
 ``--backends``: the sampling network f(x, eps) = sigmoid(decoder(mu + sigma * eps)), (mu, sigma) from the
-encoder run once, timed interleaved in one process: torch fp32 eager and channels_last_3d, with the decoder
-in block order (current) and per stage (before), torch's own layers, and the network exported to ONNX (two
+encoder run once, timed interleaved in one process: torch fp32 eager and channels_last_3d, fused (current:
+what ``VAE.sample`` runs without autograd on the CPU, oneDNN matmuls with bias and activation fused in), the
+plain GEMM + ReLU modules with the decoder in block order and per stage, torch's own layers, and the
+network exported to ONNX (two
 graphs: Conv/ConvTranspose nodes, and the block-order GEMM form) in ONNX Runtime (CPU EP) and OpenVINO
 (CPU, f32). ``--int8`` adds ONNX Runtime static (QDQ) post-training quantisation, calibrated on rendered
 views of other objects, run in both runtimes, and reports its occupancy agreement (> 0.5) with torch fp32
@@ -51,7 +53,7 @@ from torch import nn
 from pssnet_core.models import build_model, default_config
 from pssnet_core.models.base import cpu_has_fast_bf16
 from pssnet_core.models.checkpoint import load_checkpoint
-from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d, to_memory_format
+from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d, single_thread, to_memory_format
 from pssnet_core.models.vae import VAE
 
 Fn = Callable[[], Any]
@@ -207,18 +209,29 @@ def torch_layers(model: VAE) -> VAE:
 
 class SampleNet(nn.Module):
     """Encoder once, z = mu + sigma * eps for every row of ``eps``, decoder on all z, sigmoid: the sampling
-    network with the noise as an input, so that every backend decodes the same latents."""
+    network with the noise as an input, so that every backend decodes the same latents.
 
-    def __init__(self, model: VAE, per_stage: bool = False) -> None:
+    ``fused``: what ``VAE.sample`` runs without autograd on the CPU (fused oneDNN matmuls, one gather); else the
+    plain GEMM + ReLU modules (the training path), in block order or ``per_stage``.
+    """
+
+    def __init__(self, model: VAE, per_stage: bool = False, fused: bool = False) -> None:
         super().__init__()
         self.model = model
         self.per_stage = per_stage
+        self.fused = fused
 
     def forward(self, x: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
-        mu, logvar = self.model.encode(x)
+        enc = self.model.encoder
+        if self.fused:
+            with single_thread():  # as VAE.sample runs one input's encoder
+                mu, logvar = self.model._posterior(enc(x))
+        else:
+            mu, logvar = self.model._posterior(enc.dense(enc.conv(x).flatten(1)))
         z = mu + torch.exp(0.5 * logvar) * eps
-        logits = per_stage_decode(self.model, z) if self.per_stage else self.model.decode(z)
-        return torch.sigmoid(logits)
+        if self.fused:
+            return self.model.decode_probabilities(z)
+        return torch.sigmoid(per_stage_decode(self.model, z) if self.per_stage else self.model.decode(z))
 
 
 def export_onnx(net: nn.Module, x: torch.Tensor, eps: torch.Tensor, path: Path) -> Path:
@@ -301,15 +314,17 @@ def load_model(grid: int, checkpoint: str | None) -> tuple[VAE, str]:
     return build_model(default_config("pssnet", grid_size=grid)).eval(), "random"
 
 
-TORCH_VARIANTS = {  # name: (channels_last_3d, per-stage decoder, torch's own layers)
-    "torch fp32 eager, block order": (False, False, False),
-    "torch fp32 channels_last, block order": (True, False, False),
-    "torch fp32 eager, per stage (before)": (False, True, False),
-    "torch fp32 channels_last, per stage (before)": (True, True, False),
-    "torch fp32 channels_last, torch layers": (True, True, True),
+TORCH_VARIANTS = {  # name: (channels_last_3d, per-stage decoder, torch's own layers, fused)
+    "torch fp32 channels_last, fused (current)": (True, False, False, True),
+    "torch fp32 eager, fused": (False, False, False, True),
+    "torch fp32 eager, block order": (False, False, False, False),
+    "torch fp32 channels_last, block order": (True, False, False, False),
+    "torch fp32 eager, per stage": (False, True, False, False),
+    "torch fp32 channels_last, per stage": (True, True, False, False),
+    "torch fp32 channels_last, torch layers": (True, True, True, False),
 }
-REFERENCE = "torch fp32 channels_last, block order"  # the current fast path
-BEFORE = "torch fp32 channels_last, per stage (before)"
+REFERENCE = "torch fp32 channels_last, fused (current)"  # what Completer runs on an AVX2 CPU
+BEFORE = "torch fp32 channels_last, block order"  # the path before fusion (and the training path)
 
 
 def make_runner(name: str, grid: int, checkpoint: str | None, graph: str | None,
@@ -317,10 +332,10 @@ def make_runner(name: str, grid: int, checkpoint: str | None, graph: str | None,
     """(x, eps) -> probabilities of one variant: a torch one of TORCH_VARIANTS or '<runtime> <graph name>'."""
     torch.set_num_threads(threads)
     if name in TORCH_VARIANTS:
-        channels_last, per_stage, plain = TORCH_VARIANTS[name]
+        channels_last, per_stage, plain, fused = TORCH_VARIANTS[name]
         model, _ = load_model(grid, checkpoint)
         model = torch_layers(model) if plain else model
-        net = SampleNet(model.to_fast_layout() if channels_last else model, per_stage=per_stage)
+        net = SampleNet(model.to_fast_layout() if channels_last else model, per_stage=per_stage, fused=fused)
 
         def run_torch(x: np.ndarray, eps: np.ndarray) -> np.ndarray:
             with torch.inference_mode():
@@ -390,7 +405,7 @@ class Variants:
 
 
 def backends(grid: int, samples: int, repeats: int, checkpoint: str | None, int8: bool, views: int,
-             threads: int, peak: float, work: Path) -> None:
+             threads: int, peak: float, work: Path, only: list[str] | None = None) -> None:
     model, weights = load_model(grid, checkpoint)
     latent = model.latent_dim
     x0 = rendered_views(grid, 1, 0, work)[0][None]
@@ -411,6 +426,8 @@ def backends(grid: int, samples: int, repeats: int, checkpoint: str | None, int8
         for runtime, module in (("onnxruntime", ort), ("openvino", ov)):
             if module is not None:
                 specs |= {f"{runtime} {name}": str(path) for name, path in graphs.items()}
+    if only:  # the reference variants stay: the speed-up and the agreement are measured against them
+        specs = {k: v for k, v in specs.items() if k in (REFERENCE, BEFORE) or any(o in k for o in only)}
     variants = Variants(specs, grid, checkpoint, threads)
     try:
         times = variants.time(x0, eps0, repeats)
@@ -487,6 +504,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--views", type=int, default=24, help="rendered views for calibration and agreement")
+    parser.add_argument("--variants", nargs="+", default=None,
+                        help="with --backends: only the variants whose names contain one of these (and the two "
+                             "torch reference variants)")
     parser.add_argument("--checkpoint32", default=None)
     parser.add_argument("--checkpoint64", default=None)
     args = parser.parse_args()
@@ -502,7 +522,7 @@ def main() -> None:
             if args.backends:
                 checkpoint = {32: args.checkpoint32, 64: args.checkpoint64}.get(grid)
                 backends(grid, args.samples, args.repeats, checkpoint, args.int8, args.views, args.threads, peak,
-                         Path(tmp))
+                         Path(tmp), args.variants)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,9 @@
 
 The encoder runs once per call and the decoder once on all latents in one batch, under
 ``torch.inference_mode``. The fast path (``fast=True``) uses channels_last_3d weights and, where the
-hardware runs bf16 natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), bf16 autocast; elsewhere fp32.
+hardware runs bf16 natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), bf16 autocast; elsewhere fp32. In fp32 on
+the CPU (either setting) sampling runs fused oneDNN matmuls (``Decoder3D.probabilities``), equal to the
+plain layers up to fp32 rounding.
 
 This module imports only torch/numpy (+ PyYAML via the configs): no open3d, cv2, trimesh or rclpy, so it
 also runs on the GPU training machine. Observations are taken by duck typing (``.network_input()``).
@@ -71,7 +73,8 @@ class Completer:
         config: its config.
         device: "cpu" or "cuda".
         threads: torch CPU threads to use (process-wide setting); None leaves torch's default.
-        fast: channels_last_3d + bf16 autocast where native; False = plain fp32 eager (reference).
+        fast: channels_last_3d + bf16 autocast where native; False = default layout in fp32 (the reference for
+            bf16; fp32 sampling on the CPU runs the fused oneDNN path either way).
         info: checkpoint metadata (``extra``), kept for callers.
         box_temperature: default factor on the posterior sigma of the box latent dims (PSSNet; 1.0 = the
             trained posterior); :meth:`complete` may override it per call. :meth:`from_checkpoint` takes the
@@ -152,7 +155,8 @@ class Completer:
         if tuple(array.shape) != (2, n, n, n):
             raise CompletionInputError(f"network input must have shape (2, {n}, {n}, {n}) for this "
                                        f"{n}^3 model, got {tuple(array.shape)}")
-        if not torch.isfinite(array).all():
+        # numpy: one serial pass; torch's isfinite().all() is five parallel ones (~0.1 vs 35 ms median when busy).
+        if not np.isfinite(array.numpy()).all():
             raise CompletionInputError("network input contains NaN or inf")
         return array[None]
 

@@ -119,3 +119,26 @@ def test_missing_default_checkpoint_says_how_to_train(tmp_path, monkeypatch):
     with pytest.raises(CheckpointError, match="no checkpoint file"):
         Completer.from_checkpoint(tmp_path / "other.pt")
 
+
+
+@pytest.mark.skipif(not inference.DEFAULT_CHECKPOINT.is_file(), reason="no shipped default model")
+def test_shipped_model_fused_sampling_equals_the_autograd_path():
+    """The fused inference path (oneDNN matmuls, gather) against the training path (addmm, ReLU, permuted
+    copy) on the shipped 32^3 model: same occupancy, probabilities within fp32 rounding, several inputs."""
+    completer = Completer.from_checkpoint(None, threads=1)
+    n = completer.grid_size
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        x = np.zeros((2, n, n, n), np.float32)
+        lo = n // 4 + int(rng.integers(0, 4))
+        x[0, lo, lo:3 * n // 4, lo:3 * n // 4] = 1  # a face and the free space in front of it
+        x[1, :lo, lo:3 * n // 4, lo:3 * n // 4] = 1
+        result = completer.complete(x, 20, seed=seed)
+        with torch.enable_grad():  # autograd on: the plain path
+            reference = completer.model.sample(torch.from_numpy(x)[None], 20,
+                                               generator=torch.Generator().manual_seed(seed),
+                                               box_temperature=completer.box_temperature)
+        reference = reference[:, 0].detach().numpy()
+        np.testing.assert_allclose(result.probabilities, reference, rtol=0, atol=1e-5)
+        assert np.array_equal(result.occupancy, reference > 0.5)
+        assert 0 < result.occupancy.mean() < 0.5

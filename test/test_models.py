@@ -22,7 +22,7 @@ from pssnet_core.models import (
 )
 from pssnet_core.models.base import bce_sum
 from pssnet_core.models.flow import RealNVP
-from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d, Decoder3D
+from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d, Decoder3D, Encoder3D
 
 GRID = 16
 CPU = StepContext(torch.device("cpu"))
@@ -169,16 +169,17 @@ def test_training_feeds_flow_of_box_to_the_decoder():
     assert not torch.allclose(seen2[0][:, :k], seen[0][:, :k], atol=1e-2)
 
 
-def test_sampling_uses_the_posterior_not_the_flow():
+def test_sampling_uses_the_posterior_not_the_flow(monkeypatch):
     model = tiny_model("pssnet").eval()
     b = batch(1)
     called = []
     handle_flow = model.flow.register_forward_hook(lambda *a: called.append(1))
-    seen, handle = _capture_decoder_input(model)
+    seen: list[torch.Tensor] = []
+    decode = model.decode_probabilities  # sampling's decoder call (the fused path runs no forward hook)
+    monkeypatch.setattr(model, "decode_probabilities", lambda z: (seen.append(z), decode(z))[1])
     with torch.inference_mode():
         model.sample(b["input"], 6, generator=torch.Generator().manual_seed(3))
         mu, logvar = model.encode(b["input"])
-    handle.remove()
     handle_flow.remove()
     assert not called, "sampling must not run the flow"
     eps = torch.randn(6, model.latent_dim, generator=torch.Generator().manual_seed(3))
@@ -283,6 +284,57 @@ def test_block_order_decoder_equals_torch_transposed_convolutions(channels, grid
     torch.testing.assert_close(z_block.grad, z_ref.grad, rtol=1e-4, atol=1e-4)
 
 
+def _torch_layer_chain(blocks: list[torch.nn.Module], cls: type) -> torch.nn.Sequential:
+    """nn.Conv3d / nn.ConvTranspose3d (kernel 2, stride 2) copies of ``blocks`` with ReLU between them."""
+    chain = torch.nn.Sequential()
+    for i, block in enumerate(blocks):
+        layer = cls(block.in_channels, block.out_channels, kernel_size=2, stride=2)
+        layer.load_state_dict(block.state_dict())
+        chain.append(layer)
+        if i < len(blocks) - 1:
+            chain.append(torch.nn.ReLU())
+    return chain
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize(("channels", "grid", "batch_size"), [([3, 5, 4], 16, 1), ([4, 6], 12, 2)])
+def test_fused_inference_equals_torch_layers(channels, grid, batch_size, channels_last):
+    """Without autograd on the CPU the encoder and ``Decoder3D.probabilities`` run fused oneDNN matmuls and one
+    gather; the reference is a plain nn.Conv3d / nn.ConvTranspose3d chain on the same random weights."""
+    if not torch.backends.mkldnn.is_available():
+        pytest.skip("this torch build has no oneDNN: the fused path does not run")
+    torch.manual_seed(0)
+    encoder, decoder = Encoder3D(2, channels, grid, 14), Decoder3D(7, channels, grid)
+    with torch.no_grad():  # biases off zero so that a misplaced one shows
+        for p in [*encoder.parameters(), *decoder.parameters()]:
+            p.normal_(0.0, 0.5)
+    x = torch.rand(batch_size, 2, grid, grid, grid)
+    z = torch.randn(3, 7)
+    if channels_last:
+        encoder, decoder = (m.to(memory_format=torch.channels_last_3d) for m in (encoder, decoder))
+        x = x.contiguous(memory_format=torch.channels_last_3d)
+    side = grid // 2 ** len(channels)
+
+    def reference() -> tuple[torch.Tensor, torch.Tensor]:
+        convs = _torch_layer_chain([m for m in encoder.conv if isinstance(m, BlockConv3d)], torch.nn.Conv3d)
+        deconvs = _torch_layer_chain([m for m in decoder.deconv if isinstance(m, BlockDeconv3d)],
+                                     torch.nn.ConvTranspose3d)
+        h = torch.relu(decoder.dense(z)).view(-1, channels[-1], side, side, side)
+        return encoder.dense(torch.relu(convs(x)).flatten(1)), torch.sigmoid(deconvs(h))
+
+    for _ in range(2):  # the second round checks that the packed weights follow an in-place weight change
+        with torch.no_grad():
+            encoded_ref, probs_ref = reference()
+        with torch.inference_mode():
+            encoded, probs = encoder(x), decoder.probabilities(z)
+        assert probs.shape == (3, 1, grid, grid, grid)
+        torch.testing.assert_close(encoded, encoded_ref, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(probs, probs_ref, rtol=0, atol=1e-5)
+        with torch.no_grad():
+            for p in [*encoder.parameters(), *decoder.parameters()]:
+                p.mul_(-0.9)
+
+
 def test_block_layers_reject_wrong_input():
     with pytest.raises(ValueError, match="expected"):
         BlockDeconv3d(4, 2)(torch.zeros(1, 3, 2, 2, 2))
@@ -318,8 +370,8 @@ def test_box_temperature_scales_only_the_box_dims_of_the_posterior_noise(monkeyp
     model = tiny_model("pssnet").eval()
     x = batch(1)["input"]
     latents: list[torch.Tensor] = []
-    decode = model.decode
-    monkeypatch.setattr(model, "decode", lambda z: (latents.append(z.clone()), decode(z))[1])
+    decode = model.decode_probabilities
+    monkeypatch.setattr(model, "decode_probabilities", lambda z: (latents.append(z.clone()), decode(z))[1])
     with torch.inference_mode():
         mu, _ = model.encode(x)
         for t in (1.0, 3.0):

@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import weakref
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
+
 import torch
 from torch import nn
 
@@ -35,14 +41,28 @@ class BlockConv3d(nn.Conv3d):
         super().__init__(in_channels, out_channels, kernel_size=2, stride=2)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        blocks = self.blocks(x)
+        weight = self.row_weight().t()
+        y = torch.addmm(self.bias, blocks, weight) if self.bias is not None else blocks @ weight
+        return self.to_grid(y, x)
+
+    def blocks(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, C_in, D, H, W) -> (B * D/2 * H/2 * W/2, 8 * C_in): each output voxel's input block as one row,
+        [kd, kh, kw, C_in]."""
         b, c_in, d, h, w = _check_5d(x, self.in_channels)
         if d % 2 or h % 2 or w % 2:
             raise ValueError(f"BlockConv3d needs even spatial sizes, got {tuple(x.shape[2:])}")
-        blocks = (x.permute(0, 2, 3, 4, 1).reshape(b, d // 2, 2, h // 2, 2, w // 2, 2, c_in)
-                  .permute(0, 1, 3, 5, 2, 4, 6, 7).reshape(-1, 8 * c_in))  # rows: [kd, kh, kw, C_in]
-        weight = self.weight.permute(2, 3, 4, 1, 0).reshape(8 * c_in, self.out_channels)
-        y = torch.addmm(self.bias, blocks, weight) if self.bias is not None else blocks @ weight
-        return y.view(b, d // 2, h // 2, w // 2, self.out_channels).permute(0, 4, 1, 2, 3)  # channels_last_3d
+        return (x.permute(0, 2, 3, 4, 1).reshape(b, d // 2, 2, h // 2, 2, w // 2, 2, c_in)
+                .permute(0, 1, 3, 5, 2, 4, 6, 7).reshape(-1, 8 * c_in))
+
+    def row_weight(self) -> torch.Tensor:
+        """(C_out, 8 * C_in), columns [kd, kh, kw, C_in]: a free view for channels_last_3d weights."""
+        return self.weight.permute(0, 2, 3, 4, 1).reshape(self.out_channels, -1)
+
+    def to_grid(self, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """Output rows (one per output voxel) -> (B, C_out, D/2, H/2, W/2) in channels_last_3d memory."""
+        b, _, d, h, w = x.shape
+        return y.view(b, d // 2, h // 2, w // 2, self.out_channels).permute(0, 4, 1, 2, 3)
 
 
 class BlockDeconv3d(nn.ConvTranspose3d):
@@ -68,11 +88,14 @@ class BlockDeconv3d(nn.ConvTranspose3d):
     def block_rows(self, rows: torch.Tensor) -> torch.Tensor:
         """The layer on voxel rows (R, C_in) -> (8 R, C_out): each input row's 2x2x2 output block as 8
         consecutive rows in [kd, kh, kw] order ("block order"), no shuffle into spatial order."""
-        c_in, c_out = self.in_channels, self.out_channels
-        # (C_in, C_out, 2, 2, 2) -> (C_in, [kd, kh, kw, C_out]): a free view for channels_last_3d weights.
-        weight = self.weight.permute(0, 2, 3, 4, 1).reshape(c_in, 8 * c_out)
+        weight = self.row_weight().t()
         y = torch.addmm(self.bias.repeat(8), rows, weight) if self.bias is not None else rows @ weight
-        return y.view(-1, c_out)
+        return y.view(-1, self.out_channels)
+
+    def row_weight(self) -> torch.Tensor:
+        """(8 * C_out, C_in), rows [kd, kh, kw, C_out]: the transpose of a free view for channels_last_3d
+        weights."""
+        return self.weight.permute(0, 2, 3, 4, 1).reshape(self.in_channels, -1).t()
 
 
 def blocks_to_grid(rows: torch.Tensor, batch: int, size: tuple[int, int, int], stages: int) -> torch.Tensor:
@@ -88,6 +111,68 @@ def blocks_to_grid(rows: torch.Tensor, batch: int, size: tuple[int, int, int], s
     spatial = [1 + a + 3 * j for a in range(3) for j in range(stages + 1)]
     y = y.permute(0, *spatial, y.ndim - 1).reshape(batch, *(n * 2**stages for n in size), c)
     return y.permute(0, 4, 1, 2, 3)
+
+
+@functools.lru_cache(maxsize=8)
+def grid_order(side: int, stages: int) -> torch.Tensor:
+    """(N^3,) int64: for each voxel of one (N, N, N) grid in spatial order, its row in block order
+    (see :func:`blocks_to_grid`), N = side * 2**stages."""
+    rows = torch.arange((side * 2**stages) ** 3).view(-1, 1)
+    return blocks_to_grid(rows, 1, (side,) * 3, stages).reshape(-1)
+
+
+# ------------------------------------------------------------------------------ fused inference (oneDNN)
+# Inference on the CPU runs every GEMM as one oneDNN matmul with its bias and activation fused in (torch's
+# linear_pointwise op, the one torch.compile's CPU backend emits) on weights pre-packed once. Why: with
+# addmm + ReLU, torch broadcasts the bias into the whole output before the GEMM and makes a second pass for
+# the ReLU, and each such pass over the 21 MB 128 -> 64 output is a parallel region that, on a busy 2-core
+# machine, waits for the slower thread (BENCHMARKS.md, "Inference").
+
+
+class PackedLinear(NamedTuple):
+    """y = activation(x @ weight.T + bias), weight in oneDNN's packed layout."""
+
+    weight: torch.Tensor
+    bias: torch.Tensor | None
+
+    def __call__(self, x: torch.Tensor, activation: str = "none") -> torch.Tensor:
+        return torch.ops.mkldnn._linear_pointwise(x, self.weight, self.bias, activation, [], "")
+
+
+def fused_inference_applies(x: torch.Tensor) -> bool:
+    """Whether the fused oneDNN path may run: no autograd, fp32 CPU tensors, no autocast, oneDNN built in, not
+    being traced (an ONNX export wants the plain GEMMs)."""
+    return (not torch.is_grad_enabled() and x.device.type == "cpu" and x.dtype == torch.float32
+            and torch.backends.mkldnn.is_available() and not torch.is_autocast_enabled("cpu")
+            and not torch.jit.is_tracing())
+
+
+_PACKED: weakref.WeakKeyDictionary[nn.Module, tuple[tuple[tuple[int, int], ...], list[PackedLinear]]] = \
+    weakref.WeakKeyDictionary()
+
+
+def packed_linears(module: nn.Module, weights: Callable[[], list[tuple[torch.Tensor, torch.Tensor | None]]]
+                   ) -> list[PackedLinear]:
+    """The ((N, K) weight, bias) pairs that ``weights()`` gives, packed for oneDNN; cached per module until any
+    of its parameters changes (storage or in-place version: optimizer steps, load_state_dict, .to())."""
+    key = tuple((p.data_ptr(), p._version) for p in module.parameters())
+    cached = _PACKED.get(module)
+    if cached is None or cached[0] != key:
+        packed = [PackedLinear(torch.ops.mkldnn._reorder_linear_weight(w.detach().contiguous()),
+                               None if b is None else b.detach().contiguous()) for w, b in weights()]
+        cached = _PACKED[module] = (key, packed)
+    return cached[1]
+
+
+@contextlib.contextmanager
+def single_thread() -> Iterator[None]:
+    """torch on one thread inside the block (the OpenMP setting is per calling thread; MKL's is global)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _check_5d(x: torch.Tensor, channels: int) -> tuple[int, int, int, int, int]:
@@ -114,11 +199,28 @@ class Encoder3D(nn.Module):
             layers += [BlockConv3d(width, ch), nn.ReLU(inplace=True)]
             width = ch
         self.conv = nn.Sequential(*layers)
-        side = grid_size // 2 ** len(channels)
-        self.dense = nn.Linear(width * side**3, out_features)
+        self.side = grid_size // 2 ** len(channels)
+        self.dense = nn.Linear(width * self.side**3, out_features)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        convs = [m for m in self.conv if not isinstance(m, nn.ReLU)]
+        if fused_inference_applies(x) and all(isinstance(m, BlockConv3d) for m in convs):
+            return self._fused_forward(x, convs)
         return self.dense(self.conv(x).flatten(1))
+
+    def _fused_forward(self, x: torch.Tensor, convs: list[BlockConv3d]) -> torch.Tensor:
+        """The same function without autograd: each stage one fused oneDNN matmul (+ bias + ReLU)."""
+
+        def weights() -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+            # The dense layer reads the last grid voxel-major ([voxel, C]), as the stages emit it.
+            dense = self.dense.weight.view(self.dense.out_features, convs[-1].out_channels, self.side**3)
+            return ([(m.row_weight(), m.bias) for m in convs]
+                    + [(dense.transpose(1, 2).reshape(self.dense.out_features, -1), self.dense.bias)])
+
+        *stages, dense = packed_linears(self, weights)
+        for conv, stage in zip(convs, stages, strict=True):
+            x = conv.to_grid(stage(conv.blocks(x), "relu"), x)
+        return dense(x.permute(0, 2, 3, 4, 1).reshape(x.shape[0], -1))
 
 
 class Decoder3D(nn.Module):
@@ -153,6 +255,32 @@ class Decoder3D(nn.Module):
                 rows = layer(rows)
         side = (self.side,) * 3
         return blocks_to_grid(rows, h.shape[0], side, stages)
+
+    def probabilities(self, z: torch.Tensor) -> torch.Tensor:
+        """sigmoid(self(z)), (B, 1, N, N, N). Without autograd on the CPU in fp32 (``sample``'s case): each
+        stage one fused oneDNN matmul (+ bias + ReLU, the last + sigmoid) in block order, and one gather into
+        spatial order."""
+        layers = [m for m in self.deconv if not isinstance(m, nn.ReLU)]
+        if not (fused_inference_applies(z) and all(isinstance(m, BlockDeconv3d) for m in layers)):
+            return torch.sigmoid(self(z).float())
+
+        def weights() -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+            # Dense outputs reordered from [C, voxel] to [voxel, C]: its (B, b^3 * C) output then is the first
+            # stage's voxel rows (B * b^3, C) without a transpose.
+            voxels = self.side**3
+            dense = self.dense.weight.view(self.top, voxels, -1).transpose(0, 1).reshape(self.top * voxels, -1)
+            bias = self.dense.bias.view(self.top, voxels).t().reshape(-1)
+            return [(dense, bias)] + [(m.row_weight(), None if m.bias is None else m.bias.repeat(8)) for m in layers]
+
+        dense, *stages = packed_linears(self, weights)
+        rows = dense(z, "relu").view(-1, self.top)
+        for layer, stage in zip(layers[:-1], stages[:-1], strict=True):
+            rows = stage(rows, "relu").view(-1, layer.out_channels)
+        probs = stages[-1](rows, "sigmoid").view(z.shape[0], -1)  # one channel: (B, N^3) in block order
+        n = self.side * 2 ** len(layers)
+        # A gather instead of blocks_to_grid's 3 * (stages + 1) + 2-dimensional permuted copy, which torch
+        # walks two elements at a time (1.3 vs 16 ms median, 20 x 32^3).
+        return probs.index_select(1, grid_order(self.side, len(layers))).view(-1, 1, n, n, n)
 
 
 class Discriminator3D(nn.Module):

@@ -27,6 +27,7 @@ PSSNet specifics (paper sec. 4, DESIGN.md):
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Iterator
 
@@ -44,7 +45,7 @@ from pssnet_core.models.base import (
 from pssnet_core.models.box_mixture import BoxMixtureHead, mixture_nll
 from pssnet_core.models.config import PSSNetConfig, VAEConfig, VAEGANConfig
 from pssnet_core.models.flow import LOG_2PI, RealNVP, log_prob_from
-from pssnet_core.models.networks import Decoder3D, Discriminator3D, Encoder3D
+from pssnet_core.models.networks import Decoder3D, Discriminator3D, Encoder3D, single_thread
 
 
 def single_sample_kl(z: torch.Tensor, mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
@@ -80,6 +81,10 @@ class VAE(CompletionModel):
         """Occupancy logits (B,1,N,N,N)."""
         return self.decoder(z)
 
+    def decode_probabilities(self, z: torch.Tensor) -> torch.Tensor:
+        """Occupancy probabilities (B,1,N,N,N), fp32: sigmoid(decode(z)), fused without autograd on the CPU."""
+        return self.decoder.probabilities(z)
+
     def _vae_forward(self, x: torch.Tensor, ctx: StepContext
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         with ctx.autocast():
@@ -113,9 +118,13 @@ class VAE(CompletionModel):
                box_temperature: float = 1.0) -> torch.Tensor:
         check_num_samples(num_samples)
         t = check_box_temperature(box_temperature, self.box_dim > 0)
-        mu, logvar = self.encode(self.check_input(x))  # encoder once
-        z = self.sample_latents(mu, logvar, num_samples, generator, t)
-        return torch.sigmoid(self.decode(z).float())  # decoder on all latents in one batch
+        # One input's encoder and latent draws are ~60 MMAC of small ops: on one thread none of them waits for a
+        # second thread to be scheduled, which on a busy 2-core machine costs more than the parallel GEMMs save
+        # (encoder 9 vs 60 ms median, 3.9 vs 5.0 ms best; BENCHMARKS.md "Inference").
+        with single_thread() if x.shape[0] == 1 else contextlib.nullcontext():
+            mu, logvar = self.encode(self.check_input(x))  # encoder once
+            z = self.sample_latents(mu, logvar, num_samples, generator, t)
+        return self.decode_probabilities(z)  # decoder on all latents in one batch
 
     def sample_latents(self, mu: torch.Tensor, logvar: torch.Tensor, num_samples: int,
                        generator: torch.Generator | None, box_temperature: float) -> torch.Tensor:
