@@ -148,7 +148,10 @@ def test_start_up_cleanup_removes_a_dead_participants_files_and_keeps_a_live_one
             current = shm_files()
             for path in stale:
                 assert current.get(path) != dead.shm_files[path], f"{path} of the killed participant left"
-                assert path in first.removed
+                # Port files are shared by name by every participant: another DDS user on the machine (a second
+                # test run, a benchmark) may have re-created this one in the meantime, so ours had nothing left
+                # to remove (run 12 of a 20-run loop failed so on fastrtps_port7000). Segments are per participant.
+                assert path in first.removed or "fastrtps_port" in path, f"{path} not removed: {first.removed}"
             assert all(current.get(p) == inode for p, inode in live.shm_files.items()), "a live participant's file"
             assert live.running()
             assert all(p.exists() for p in young + held + port), "a young, a locked or a port opening"
