@@ -71,10 +71,12 @@ def run_step(script: str, args: list[str], out: Path) -> dict:
     return json.loads(out.read_text())
 
 
-def measure(args: argparse.Namespace, tmp: Path) -> dict[str, float | str]:
-    """Target key -> measured value, or the reason it could not be measured."""
+def measure(args: argparse.Namespace, tmp: Path) -> tuple[dict[str, float | str], dict[str, float]]:
+    """Target key -> measured value (a median), or the reason it could not be measured; and the best run
+    where the benchmark reports one (on a shared machine the closest to an idle one)."""
     repeats = "5" if args.quick else "15"
     values: dict[str, float | str] = {}
+    best: dict[str, float] = {}
     steps = {
         "inference": ("inference_bench", ["--grids", "32", "64", "--repeats", repeats,
                                           "--checkpoint32", str(SHIPPED_MODEL)]),
@@ -93,8 +95,9 @@ def measure(args: argparse.Namespace, tmp: Path) -> dict[str, float | str]:
             values.update({key: str(error) for key in keys})
             continue
         if name == "inference":
-            values["network32"] = numbers["grids"]["32"]["fast_ms"]
-            values["network64"] = numbers["grids"]["64"]["fast_ms"]
+            for grid in ("32", "64"):
+                values[f"network{grid}"] = numbers["grids"][grid]["fast_ms"]
+                best[f"network{grid}"] = numbers["grids"][grid]["fast_best_ms"]
         elif name == "grasps":
             values["grasps"] = numbers["sizes"]["32"]["generate_ms"] + numbers["sizes"]["32"]["score_ms"]
         elif name == "service":
@@ -102,7 +105,7 @@ def measure(args: argparse.Namespace, tmp: Path) -> dict[str, float | str]:
             values["topics"] = numbers["topics"]["output_hz"]
         else:
             values["plausible"] = numbers["pairs_per_second"]
-    return values
+    return values, best
 
 
 def main() -> int:
@@ -115,10 +118,10 @@ def main() -> int:
     kind = "AVX512-BF16/AMX (bf16 targets)" if bf16 else "AVX2, no bf16 (fp32 targets)"
     print(f"[all] CPU: {model}: {kind}")
     with tempfile.TemporaryDirectory() as tmp:
-        values = measure(args, Path(tmp))
+        values, best = measure(args, Path(tmp))
     rows, failures = [], 0
     print(f"\n[all] CPU: {model}: {kind}")
-    print(f"{'what':<48} {'measured':>12} {'target':>12} {'ratio':>7}  met")
+    print(f"{'what':<48} {'measured':>12} {'target':>12} {'ratio':>7}  met  (best run)")
     for key, target in TARGETS.items():
         goal = target.bf16 if bf16 else target.avx2
         value = values.get(key, "not run")
@@ -130,11 +133,13 @@ def main() -> int:
         # ratio <= 1 means met, whichever way the target points
         ratio = value / goal if target.at_most else goal / value if value > 0 else float("inf")
         sign = "<=" if target.at_most else ">="
+        extra = f"  ({best[key]:.2f} {target.unit})" if key in best else ""
         print(f"{target.what:<48} {value:>8.2f} {target.unit:<3} {sign}{goal:>7g} {target.unit:<3}"
-              f"{ratio:>6.2f}x  {'yes' if ratio <= 1 else 'no'}")
-        rows.append({"what": target.what, "measured": value, "target": goal, "unit": target.unit,
-                     "at_most": target.at_most, "ratio": ratio, "met": ratio <= 1})
-    print("[all] ratio: measured / target for times, target / measured for rates (<= 1 is met)")
+              f"{ratio:>6.2f}x  {'yes' if ratio <= 1 else 'no '}{extra}")
+        rows.append({"what": target.what, "measured": value, "best": best.get(key), "target": goal,
+                     "unit": target.unit, "at_most": target.at_most, "ratio": ratio, "met": ratio <= 1})
+    print("[all] measured: medians (grasps: CPU time); ratio: measured / target for times, target / measured for "
+          "rates (<= 1 is met); best run: the fastest of the repeats")
     if args.json:
         args.json.write_text(json.dumps({"cpu": model, "bf16": bf16, "rows": rows}, indent=2))
     return 1 if failures else 0
