@@ -559,15 +559,15 @@ def carve_free_space(depth: np.ndarray, usable: np.ndarray, intrinsics: CameraIn
     # The windowed minimum only where voxels project, plus the window's reach: every window of a projected pixel
     # lies inside this crop, so the crop's edges never enter a result (where they are the image's own edges,
     # the replicated border is the same as on the whole image).
-    u_in, v_in = u[in_image].astype(np.int64), v[in_image].astype(np.int64)
-    u0, u1 = max(int(u_in.min()) - radius, 0), min(int(u_in.max()) + radius + 1, intrinsics.width)
-    v0, v1 = max(int(v_in.min()) - radius, 0), min(int(v_in.max()) + radius + 1, intrinsics.height)
+    u0 = max(int(np.min(u, where=in_image, initial=np.inf)) - radius, 0)
+    u1 = min(int(np.max(u, where=in_image, initial=-np.inf)) + radius + 1, intrinsics.width)
+    v0 = max(int(np.min(v, where=in_image, initial=np.inf)) - radius, 0)
+    v1 = min(int(np.max(v, where=in_image, initial=-np.inf)) + radius + 1, intrinsics.height)
     blocked = np.where(usable[v0:v1, u0:u1], depth[v0:v1, u0:u1], 0.0).astype(np.float32)
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
     nearest_reading = cv2.erode(blocked, kernel, borderType=cv2.BORDER_REPLICATE)  # windowed minimum
     # The pixel index in int64: float32 holds integers exactly only up to 2**24, fewer pixels than a 4200 x 4200 image.
-    flat = np.zeros(z.shape, dtype=np.int64)
-    flat[in_image] = (v_in - v0) * (u1 - u0) + (u_in - u0)
+    flat = np.where(in_image, (v.astype(np.int64) - v0) * (u1 - u0) + (u.astype(np.int64) - u0), 0)
     free = in_image & (z + np.float32(half_diagonal) < nearest_reading.reshape(-1)[flat])
     return free.reshape(pose.size, pose.size, pose.size)
 
