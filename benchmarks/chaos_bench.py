@@ -33,9 +33,9 @@ from pssnet_ros.client import RosClient, wait_until
 from pssnet_ros.processes import (
     SHM_GRACE_S,
     RosProcess,
+    claim_domain_id,
     clean_stale_shm,
     cpu_kind,
-    free_domain_id,
     ros_env,
     ros_param_args,
     shm_files,
@@ -182,7 +182,7 @@ def main() -> int:
     parser.add_argument("--only", default="abcd", help="scenarios to run, e.g. 'ad'")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
-    domain = free_domain_id(10 + os.getpid() % 90)
+    domain = claim_domain_id(10 + os.getpid() % 90)
     print(f"[chaos] CPU: {cpu_kind()}; {os.cpu_count()} cores; {platform.platform()}; ROS_DOMAIN_ID {domain}; "
           f"node threads {args.threads}")
     results: dict[str, object] = {"cpu": cpu_kind()}

@@ -42,7 +42,7 @@ import numpy as np
 
 from pssnet_core.data.scenes import RenderedView
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.processes import RosProcess, free_domain_id, ros_env
+from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env
 from pssnet_ros.synthetic_camera import FRAME_ID, SceneOptions, render_scene
 
 #: requests or messages between two progress lines (with the node's RSS)
@@ -455,7 +455,7 @@ def main() -> int:
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     if args.domain_id is None:
-        args.domain_id = free_domain_id(10 + os.getpid() % 90)
+        args.domain_id = claim_domain_id(10 + os.getpid() % 90)
 
     from pssnet_interfaces.srv import SampleCompletions
 

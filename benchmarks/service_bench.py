@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
-from pssnet_ros.processes import RosProcess, free_domain_id, ros_env, stale_shm_files
+from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
 
@@ -97,7 +97,7 @@ def main() -> int:
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     if args.domain_id is None:
-        args.domain_id = free_domain_id(10 + os.getpid() % 90)
+        args.domain_id = claim_domain_id(10 + os.getpid() % 90)
 
     from pssnet_interfaces.srv import SampleCompletions
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data

@@ -31,9 +31,9 @@ from pssnet_ros import chaos
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.processes import (
     RosProcess,
+    claim_domain_id,
     cpu_kind,
     cpu_seconds,
-    free_domain_id,
     machine_cpu,
     ros_env,
     ros_param_args,
@@ -249,7 +249,7 @@ def main() -> int:
     if args.worker is not None:
         return worker(args)
 
-    domain = free_domain_id(10 + os.getpid() % 90)
+    domain = claim_domain_id(10 + os.getpid() % 90)
     print(f"[soak] CPU: {cpu_kind()}; {os.cpu_count()} cores; {platform.platform()}; ROS_DOMAIN_ID {domain}; "
           f"node threads {args.threads}, {args.samples} samples, camera {args.rate:g} Hz, max_rate_hz "
           f"{args.max_rate:g}, grasps on; load average before: {os.getloadavg()[0]:.2f}", flush=True)

@@ -27,7 +27,7 @@ import numpy as np
 
 from pssnet_ros.bag import write_demo_bag
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.processes import RosProcess, free_domain_id, ros_env, stale_shm_files
+from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
 
@@ -187,7 +187,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 1 <= args.samples <= 100:
         print(f"[demo] error: --samples must be in [1, 100], got {args.samples}", file=sys.stderr)
         return 2
-    domain = args.domain_id if args.domain_id is not None else free_domain_id(10 + os.getpid() % 90)
+    domain = args.domain_id if args.domain_id is not None else claim_domain_id(10 + os.getpid() % 90)
     env = ros_env(domain)
     options = SceneOptions(mug_seed=args.mug_seed)
     view = render_scene(options)

@@ -3,7 +3,9 @@
 - :func:`ros_env`: the environment of a child process: its own ROS_DOMAIN_ID, discovery on localhost, the
   shipped Fast DDS profile, and the ROS wheels' bootstrap guard cleared (a child must redo the wheels'
   library-path set-up itself, which matters when it runs another interpreter).
-- :func:`free_domain_id`: a ROS_DOMAIN_ID that no DDS participant on this machine uses right now.
+- :func:`free_domain_id`: a ROS_DOMAIN_ID that no DDS participant on this machine uses right now and no
+  process has claimed; :func:`claim_domain_id` also claims it for the rest of this process's life, so that
+  concurrent test runs, demos and benchmarks on one machine never share a domain.
 - :class:`RosProcess`: a child process whose output is collected in the background; ``wait_for`` a log
   line, ``stop`` with SIGINT (then SIGTERM/SIGKILL only if it hangs), and the Fast DDS shared-memory
   segments it created, to check that none are left behind (:func:`stale_shm_files`).
@@ -19,16 +21,19 @@ over by ours, so a process is blamed only for segments it owned that did not exi
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import re
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 BOOTSTRAP_GUARD = "_ROS_WHEELS_BOOTSTRAP_COMPLETE"
 SHM_DIR = Path("/dev/shm")
@@ -98,19 +103,81 @@ def udp_ports_in_use() -> set[int]:
     return ports
 
 
+#: Claim files of ROS domains (``<id>.lock``), one flock each, shared by every process on the machine.
+DOMAIN_CLAIMS_DIR = Path(tempfile.gettempdir()) / "pssnet_ros_domains"
+#: The domains this process has claimed, with their open, flock-ed claim files. Process-wide on purpose: a claim
+#: lasts exactly as long as the process, and the kernel drops the flock when it ends, even on kill -9.
+_CLAIMS: dict[int, BinaryIO] = {}
+
+
+def _claim_path(domain: int) -> Path:
+    return DOMAIN_CLAIMS_DIR / f"{domain}.lock"
+
+
+def _claimed(domain: int) -> bool:
+    """Whether this or another live process holds the claim of ``domain``."""
+    if domain in _CLAIMS:
+        return True
+    try:
+        fd = os.open(_claim_path(domain), os.O_RDONLY)
+    except OSError:  # no claim file: never claimed
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+
+
+def _candidates(preferred: int, low: int, high: int) -> list[int]:
+    """Domains in [low, high] from ``preferred`` on, without those whose RTPS ports somebody has bound."""
+    busy = udp_ports_in_use()
+    count = high - low + 1
+    order = [low + (preferred - low + i) % count for i in range(count)]
+    return [d for d in order
+            if not any(PORT_BASE + DOMAIN_GAIN * d <= port < PORT_BASE + DOMAIN_GAIN * (d + 1) for port in busy)]
+
+
 def free_domain_id(preferred: int, low: int = 10, high: int = 99) -> int:
-    """A ROS_DOMAIN_ID in [low, high] whose RTPS ports nobody has bound, starting the search at ``preferred``.
+    """A ROS_DOMAIN_ID in [low, high] whose RTPS ports nobody has bound and that no process has claimed,
+    starting the search at ``preferred``.
 
     Another DDS user on the same domain (a concurrent test run, a robot stack) would talk to our nodes.
     """
-    busy = udp_ports_in_use()
-    count = high - low + 1
-    for i in range(count):
-        domain = low + (preferred - low + i) % count
-        first = PORT_BASE + DOMAIN_GAIN * domain
-        if not any(first <= port < first + DOMAIN_GAIN for port in busy):
+    for domain in _candidates(preferred, low, high):
+        if not _claimed(domain):
             return domain
     raise RuntimeError(f"every ROS domain in [{low}, {high}] is in use on this machine")
+
+
+def claim_domain_id(preferred: int, low: int = 10, high: int = 99) -> int:
+    """:func:`free_domain_id`, claimed for the rest of this process's life: no other process's
+    :func:`free_domain_id` or :func:`claim_domain_id` returns it meanwhile, nor this process's again.
+
+    Why a claim and not the ports alone: a test session picks the domains of all its modules when it collects
+    them, minutes before their nodes bind any port, and a second session on the machine saw those domains as
+    free (two nodes answered one test's calls: node-test loop and CI run side by side, 2026-11-25).
+    """
+    DOMAIN_CLAIMS_DIR.mkdir(exist_ok=True)
+    with contextlib.suppress(OSError):  # the first creator opens the folder to every user of the machine
+        DOMAIN_CLAIMS_DIR.chmod(0o1777)
+    for domain in _candidates(preferred, low, high):
+        if domain in _CLAIMS:
+            continue
+        path = _claim_path(domain)
+        handle = open(path, "ab")  # noqa: SIM115 -- held open until the process ends: that is the claim
+        with contextlib.suppress(OSError):
+            path.chmod(0o666)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            continue
+        _CLAIMS[domain] = handle
+        return domain
+    raise RuntimeError(f"every ROS domain in [{low}, {high}] is in use or claimed on this machine")
 
 
 def shm_files() -> dict[str, int]:

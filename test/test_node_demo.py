@@ -25,9 +25,10 @@ def test_demo_writes_the_figure_prints_the_summary_and_exits_0(tmp_path):
     checkpoint, trained = node_checkpoint(tmp_path)
     model = [] if trained else ["--model", str(checkpoint)]  # the shipped model, as the README runs it
     out = tmp_path / "demo"
+    domain = domain_for(5)
     result = subprocess.run([sys.executable, "-m", "pssnet_ros.demo", "--out", str(out), "--samples", "6",
-                             "--calls", "2", "--domain-id", str(domain_for(5)), *model],
-                            env=ros_env(domain_for(5)), cwd=tmp_path, capture_output=True, text=True, timeout=300)
+                             "--calls", "2", "--domain-id", str(domain), *model],
+                            env=ros_env(domain), cwd=tmp_path, capture_output=True, text=True, timeout=300)
     output = result.stdout + result.stderr
     assert result.returncode == 0, output[-4000:]
     png = out / "completions.png"

@@ -19,15 +19,16 @@ from pssnet_core.inference import DEFAULT_CHECKPOINT
 from pssnet_core.models import build_model, default_config
 from pssnet_core.models.checkpoint import save_checkpoint
 from pssnet_core.shapes import make_shape
-from pssnet_ros.processes import RosProcess, free_domain_id, ros_env
+from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32, "flow_hidden": 32, "flow_couplings": 4}
 
 
 def domain_for(module_index: int) -> int:
-    """A ROS_DOMAIN_ID for one test module (10..99): one that no DDS participant on this machine uses now,
-    searched from a start that differs between modules and runs."""
-    return free_domain_id(10 + (os.getpid() * 5 + module_index) % 90)
+    """A ROS_DOMAIN_ID for one test module (10..99), claimed for this test session: one that no DDS participant
+    on this machine uses and no other process has claimed, searched from a start that differs between modules
+    and runs."""
+    return claim_domain_id(10 + (os.getpid() * 5 + module_index) % 90)
 
 
 def render_mug_scene(seed: int = 0, distance: float = 0.6, tilt_deg: float = 30.0) -> RenderedView:

@@ -16,6 +16,7 @@ from pssnet_ros.processes import (
     LOCK_SUFFIX,
     PORT_BASE,
     RosProcess,
+    claim_domain_id,
     free_domain_id,
     ros_env,
     shm_files,
@@ -51,7 +52,36 @@ def test_a_domain_with_a_bound_rtps_port_is_skipped():
         assert free_domain_id(domain) != domain
         with pytest.raises(RuntimeError, match=f"every ROS domain in \\[{domain}, {domain}\\] is in use"):
             free_domain_id(domain, low=domain, high=domain)
-    assert free_domain_id(domain) == domain
+        with pytest.raises(RuntimeError, match=f"every ROS domain in \\[{domain}, {domain}\\] is in use"):
+            claim_domain_id(domain, low=domain, high=domain)
+
+
+CLAIMER = """
+import sys, time
+from pssnet_ros.processes import claim_domain_id
+print(claim_domain_id(int(sys.argv[1])), flush=True)
+time.sleep(300)
+"""
+
+
+def test_a_domain_claimed_by_a_live_process_is_neither_free_nor_claimable_until_it_ends():
+    """Two test sessions on one machine pick their domains long before their nodes bind a port: the claim is
+    what keeps them apart (and this process's own claims are not handed out twice)."""
+    domain = free_domain_id(60)
+    claimer = RosProcess([sys.executable, "-c", CLAIMER, str(domain)], ros_env(0), name="claimer")
+    try:
+        assert int(claimer.wait_for(r"^\d+$", 60).group(0)) == domain
+        assert free_domain_id(domain) != domain
+        with pytest.raises(RuntimeError, match="in use"):
+            free_domain_id(domain, low=domain, high=domain)
+        with pytest.raises(RuntimeError, match="in use or claimed"):
+            claim_domain_id(domain, low=domain, high=domain)
+    finally:
+        claimer.proc.send_signal(signal.SIGKILL)  # a killed claimer's claim ends with it
+        claimer.stop()
+    mine = claim_domain_id(domain, low=domain, high=domain)
+    assert mine == domain and free_domain_id(domain) != domain
+    assert claim_domain_id(domain) != domain, "this process's own claim handed out again"
 
 
 @pytest.mark.ros
