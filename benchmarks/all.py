@@ -24,6 +24,9 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from pssnet_core.models.base import cpu_has_fast_bf16
+from pssnet_ros.processes import cpu_kind
+
 HERE = Path(__file__).resolve().parent
 SHIPPED_MODEL = HERE.parent / "pssnet_core" / "checkpoints" / "default_pssnet_32.pt"
 #: Plausible-set pairs per second before issue 12 (BENCHMARKS.md: 8 references of the mug test set, 2 workers,
@@ -51,14 +54,6 @@ TARGETS = {
     "plausible": Target("plausible sets", "pairs/s", 10 * PLAUSIBLE_BASELINE_PAIRS_S,
                         10 * PLAUSIBLE_BASELINE_PAIRS_S, at_most=False),
 }
-
-
-def cpu_has_bf16() -> tuple[str, bool]:
-    """(model name, whether the CPU computes bf16 natively: AVX512-BF16 or AMX)."""
-    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
-    fields = {k.strip(): v.strip() for k, v in (line.split(":", 1) for line in text.splitlines() if ":" in line)}
-    flags = set(fields.get("flags", "").split())
-    return fields.get("model name", "unknown CPU"), bool({"avx512_bf16", "amx_bf16"} & flags)
 
 
 def run_step(script: str, args: list[str], out: Path) -> dict:
@@ -114,8 +109,9 @@ def main() -> int:
     parser.add_argument("--plausible-data", default=None, help="a test dataset directory (default: synthetic mugs)")
     parser.add_argument("--json", type=Path, default=None, help="also write the table here")
     args = parser.parse_args()
-    model, bf16 = cpu_has_bf16()
-    kind = "AVX512-BF16/AMX (bf16 targets)" if bf16 else "AVX2, no bf16 (fp32 targets)"
+    # The same test the inference fast path uses to choose bf16, so the targets follow what actually runs.
+    model, bf16 = cpu_kind(), cpu_has_fast_bf16()
+    kind = "bf16 targets" if bf16 else "fp32 targets"
     print(f"[all] CPU: {model}: {kind}")
     with tempfile.TemporaryDirectory() as tmp:
         values, best = measure(args, Path(tmp))

@@ -30,7 +30,6 @@ import json
 import math
 import os
 import re
-import subprocess
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -42,7 +41,7 @@ import numpy as np
 
 from pssnet_core.data.scenes import RenderedView
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env
+from pssnet_ros.processes import RosProcess, claim_domain_id, cpu_kind, ros_env
 from pssnet_ros.synthetic_camera import FRAME_ID, SceneOptions, render_scene
 
 #: requests or messages between two progress lines (with the node's RSS)
@@ -55,19 +54,6 @@ SUCCESS, REFUSAL, EITHER = "success", "refusal", "either"
 UNSET_STAMP = -math.inf
 #: encodings that are not depth (or not mask) encodings the node reads
 FOREIGN_ENCODINGS = ("rgb8", "bgr8", "", "32FC2", "64FC1", "16SC1", "8SC1", "yuv422", "32FC1 ", "mono16\0")
-
-
-def cpu_kind() -> str:
-    """`lscpu` model name and whether the CPU has AVX-512 BF16 (the shipped model's training machine had it)."""
-    try:
-        text = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=10).stdout
-    except (OSError, subprocess.SubprocessError) as error:
-        return f"unknown (lscpu: {error})"
-    model = re.search(r"^Model name:\s*(.+)$", text, re.MULTILINE)
-    flags = re.search(r"^Flags:\s*(.+)$", text, re.MULTILINE)
-    bf16 = flags is not None and "avx512_bf16" in flags.group(1).split()
-    return f"{model.group(1).strip() if model else 'unknown'}, {os.cpu_count()} cores, avx512_bf16 " \
-           f"{'yes' if bf16 else 'no'}"
 
 
 def rss_kib(pid: int) -> int:
@@ -518,7 +504,7 @@ def main() -> int:
     counters = {k: v - stats_before.get(k, 0) for k, v in stats_after.items() if k not in gauges}
     growth = 100.0 * (rss_after - rss_before) / rss_before if rss_after else float("nan")
     met = tally.unanswered == 0 and crashes == 0 and growth < 5.0 and final_ok
-    cpu = cpu_kind()
+    cpu = f"{cpu_kind()}, {os.cpu_count()} cores"
 
     print(f"[fuzz] CPU: {cpu}")
     print(f"[fuzz] requests: {tally.sent} sent in {service_s:.0f} s, {tally.answered} answered, {tally.refused} "

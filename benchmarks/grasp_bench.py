@@ -38,20 +38,9 @@ import numpy as np
 import pssnet_core.grasps as current
 from pssnet_core.geometry import GridConfig
 from pssnet_core.grasps import GraspCandidates, GraspConfig, approach_orientations
+from pssnet_ros.processes import cpu_kind
 
 TARGET_MS = 30.0
-
-
-def cpu_description() -> str:
-    """Model name and the vector extensions that matter here (AVX2, AVX-512), from /proc/cpuinfo."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return "unknown CPU"
-    fields = {k.strip(): v.strip() for k, v in (line.split(":", 1) for line in text.splitlines() if ":" in line)}
-    flags = set(fields.get("flags", "").split())
-    vector = "AVX-512" if "avx512f" in flags else "AVX2 (no AVX-512)" if "avx2" in flags else "no AVX2"
-    return f"{fields.get('model name', 'unknown CPU')}, {vector}"
 
 
 def completions(size: int, count: int) -> tuple[np.ndarray, object, np.ndarray]:
@@ -135,7 +124,7 @@ def main() -> int:
     parser.add_argument("--json", type=Path, default=None, help="also write the current code's numbers here")
     args = parser.parse_args()
     numbers: dict[str, dict[str, float]] = {}
-    print(f"CPU: {cpu_description()}; single thread")
+    print(f"CPU: {cpu_kind()}; single thread")
     with tempfile.TemporaryDirectory() as tmp:
         versions = {"current": current}
         if args.baseline:

@@ -4,9 +4,10 @@
    request, 20 samples, the model's grid (32^3 for the shipped model); p50/p95 over ``--calls`` calls after
    a warm-up, without and with grasps. After each call without grasps the same call runs in this process
    with the node's own functions, stage by stage (request deserialisation, message -> numpy, observation
-   grid, network, voxel centres, response building and serialisation): the service p50 over the network's
-   median from these paired calls is the service's overhead ratio; the p50 beyond the in-process total is
-   transport, executor and client. A transport floor (the same request refused at once) is printed too.
+   grid, network, voxel centres, response building and serialisation). The overhead ratio is the service p50
+   over the network time the node itself reports for the same calls (its answer's message); the in-process
+   stages split the rest from transport, executors and client. A transport floor (the same request refused at
+   once) is printed too.
 2. Sustained topic rate: the camera publishes at 30 Hz, the node runs in continuous mode with max_rate_hz
    ``--max-rate``; reports the completion rate, the input stamp -> output received latency, and how many sets
    were superseded (dropped, never queued).
