@@ -12,6 +12,7 @@ from pssnet_core.evaluation.metrics import (
     aggregate,
     chamfer_distance,
     chamfer_matrix,
+    distance_fields,
     metrics_from_distances,
     observation_metrics,
 )
@@ -112,3 +113,28 @@ def test_metrics_from_distances_and_aggregate():
         metrics_from_distances(np.zeros((0, 1)), np.zeros(0))
     with pytest.raises(MetricsError):
         observation_metrics(np.zeros((2, 4, 4)), np.zeros((N, N, N)), None, VOXEL)
+
+
+def test_grid_chamfer_over_boxes_equals_whole_fields_and_kdtree():
+    """Compact shapes at different places (their boxes leave most of the grid out): the per-box distance transforms
+    give the whole-grid fields' distances, and both the KD-tree reference."""
+    rng = np.random.default_rng(1)
+    n = 20
+    a = np.zeros((4, n, n, n), bool)
+    b = np.zeros((3, n, n, n), bool)
+    for k, grids in enumerate((a, b)):
+        for g in grids:
+            lo = rng.integers(0, n - 6, 3)
+            size = rng.integers(2, 6, 3)
+            box = tuple(slice(int(start), int(start + extent)) for start, extent in zip(lo, size, strict=True))
+            g[box] = rng.random(tuple(size)) < 0.6 + 0.2 * k
+    a[0] = False  # an empty grid among the rest
+    boxes = chamfer_matrix(a, b, VOXEL)
+    whole = chamfer_matrix(a, b, VOXEL, fields_a=distance_fields(a), fields_b=distance_fields(b))
+    np.testing.assert_allclose(boxes, whole, rtol=1e-12)
+    for s in range(1, 4):
+        for p in range(3):
+            pa = (np.argwhere(a[s]) + 0.5) * VOXEL
+            pb = (np.argwhere(b[p]) + 0.5) * VOXEL
+            assert boxes[s, p] == pytest.approx(chamfer_distance(pa, pb), rel=1e-6)
+    assert np.all(boxes[0] == math.sqrt(3) * n * VOXEL)

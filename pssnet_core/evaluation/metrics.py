@@ -6,9 +6,9 @@ Distance: the chamfer distance between the voxel-centre point clouds of two occu
 
 How it is computed: every cloud here is a set of voxel centres of the *same* grid (the reference
 observation's), so the nearest-neighbour distance from any voxel to cloud B is B's Euclidean distance
-transform (``scipy.ndimage.distance_transform_edt``, exact). One transform per grid then turns every pair
-into two masked sums, and all sample-by-shape pairs into two matrix products: for 100 samples against a
-plausible set of 100 shapes at 32^3 that is ~0.3 s instead of ~90 s of KD-tree queries (9 ms a pair). It
+transform (``scipy.ndimage.distance_transform_edt``, exact). One transform per grid (over the box that holds it
+and the other side's voxels, see :func:`chamfer_matrix`) then turns every pair into two masked sums: for 100
+samples against a plausible set of 100 shapes at 32^3 that is ~0.3 s instead of ~90 s of KD-tree queries. It
 needs only numpy/scipy (no open3d), so it also runs on the training machine. :func:`chamfer_distance` (a
 cKDTree on arbitrary point clouds) is the reference the grid version is tested against.
 
@@ -77,6 +77,41 @@ def distance_fields(grids: np.ndarray) -> np.ndarray:
     return out
 
 
+def _bounding_box(grid: np.ndarray) -> tuple[slice, ...]:
+    """Slices of the smallest box holding every occupied voxel of a non-empty (N, N, N) grid."""
+    box = []
+    for axis in range(3):
+        occupied = np.flatnonzero(grid.any(axis=tuple(a for a in range(3) if a != axis)))
+        box.append(slice(int(occupied[0]), int(occupied[-1]) + 1))
+    return tuple(box)
+
+
+def _field_sums(owners: np.ndarray, fields: np.ndarray | None, points: np.ndarray) -> np.ndarray:
+    """(O, P) sums, over the occupied voxels of ``points[p]``, of the distance to the nearest voxel of ``owners[o]``
+    (voxel units; 0 where an owner is empty).
+
+    With ``fields`` (the owners' :func:`distance_fields`) one matrix product. Without, each owner's distance
+    transform is taken only over the box around its own voxels and every voxel of ``points``: every voxel it can
+    be nearest to lies inside, so the distances there are the whole grid's, exactly; the box of a completion and
+    its plausible shapes is about a quarter of the 32^3 grid, which makes this ~3x faster than whole fields.
+    """
+    occ = points.reshape(len(points), -1)
+    if fields is not None:
+        # float64 accumulation: sums of up to N^3 distances.
+        flat = np.where(np.isfinite(fields), fields, 0).reshape(len(owners), -1)
+        return flat.astype(np.float64) @ occ.T.astype(np.float64)
+    union = points.any(axis=0)
+    sums = np.zeros((len(owners), len(points)))
+    for o, owner in enumerate(owners):
+        if not owner.any():
+            continue
+        box = _bounding_box(owner | union)
+        # float32 as distance_fields stores them, so both ways give the same distances.
+        field = ndimage.distance_transform_edt(~owner[box]).astype(np.float32)
+        sums[o] = points[(slice(None), *box)].reshape(len(points), -1).astype(np.float64) @ field.ravel()
+    return sums
+
+
 def chamfer_matrix(a: np.ndarray, b: np.ndarray, voxel_size: float, empty_distance: float | None = None,
                    fields_a: np.ndarray | None = None, fields_b: np.ndarray | None = None) -> np.ndarray:
     """Chamfer distances between every grid of ``a`` and every grid of ``b`` (voxel-centre clouds), metres.
@@ -86,7 +121,8 @@ def chamfer_matrix(a: np.ndarray, b: np.ndarray, voxel_size: float, empty_distan
         b: (B, N, N, N) bool occupancy grids of the same grid.
         voxel_size: voxel edge in metres.
         empty_distance: distance (metres) when exactly one cloud is empty; default the grid diagonal.
-        fields_a, fields_b: precomputed :func:`distance_fields` (reuse across calls).
+        fields_a, fields_b: precomputed :func:`distance_fields` (worth it for grids compared against many calls'
+            grids); without them each grid's distances are computed only where the other side's voxels lie.
 
     Returns:
         (A, B) float64 metres.
@@ -99,18 +135,10 @@ def chamfer_matrix(a: np.ndarray, b: np.ndarray, voxel_size: float, empty_distan
         raise MetricsError(f"voxel_size must be positive, got {voxel_size}")
     if empty_distance is None:
         empty_distance = math.sqrt(3.0) * a.shape[1] * voxel_size
-    fa = distance_fields(a) if fields_a is None else fields_a
-    fb = distance_fields(b) if fields_b is None else fields_b
     na = a.reshape(len(a), -1).sum(1).astype(np.float64)
     nb = b.reshape(len(b), -1).sum(1).astype(np.float64)
-    occ_a = a.reshape(len(a), -1).astype(np.float32)
-    occ_b = b.reshape(len(b), -1).astype(np.float32)
-    # Empty grids have infinite fields: zero them for the products and fix those entries afterwards.
-    fa_flat = np.where(np.isfinite(fa), fa, 0).reshape(len(a), -1)
-    fb_flat = np.where(np.isfinite(fb), fb, 0).reshape(len(b), -1)
-    # float64 accumulation: sums of up to N^3 distances.
-    sum_ab = occ_a.astype(np.float64) @ fb_flat.T.astype(np.float64)  # sum over a's points of dist to b
-    sum_ba = fa_flat.astype(np.float64) @ occ_b.T.astype(np.float64)  # sum over b's points of dist to a
+    sum_ab = _field_sums(b, fields_b, a).T  # over a's points of the distance to b
+    sum_ba = _field_sums(a, fields_a, b)  # over b's points of the distance to a
     with np.errstate(invalid="ignore", divide="ignore"):
         d = (sum_ab / na[:, None] + sum_ba / nb[None, :]) * voxel_size
     empty_a = na == 0
@@ -185,10 +213,8 @@ def observation_metrics(samples: np.ndarray, ground_truth: np.ndarray, plausible
     shapes = gt if plausible is None else _as_grids(plausible, "plausible")
     if not any(np.array_equal(s, gt[0]) for s in shapes):
         shapes = np.concatenate([gt, shapes])
-    fields_s = distance_fields(samples)
-    d_sp = chamfer_matrix(samples, shapes, voxel_size, empty_distance, fields_a=fields_s)
-    d_st = chamfer_matrix(samples, gt, voxel_size, empty_distance, fields_a=fields_s)[:, 0]
-    return metrics_from_distances(d_sp, d_st)
+    d = chamfer_matrix(samples, np.concatenate([shapes, gt]), voxel_size, empty_distance)
+    return metrics_from_distances(d[:, :-1], d[:, -1])
 
 
 METRIC_NAMES: tuple[str, ...] = ("best_accuracy_mm", "coverage_mm", "plausibility_mm", "plausible_diversity_mm")
