@@ -10,7 +10,9 @@ itself (test-split seeds, 5 degree steps, 30 degree camera tilt at 0.7 m, 32^3 g
 observations are computed (evenly spaced), each against every other observation of the set, and the time
 for the full quadratic set is extrapolated from the measured rate (the script says so when it does).
 
---acceptance also reports what any test run before ICP would have to reject (see :func:`acceptance_report`).
+--acceptance also reports what any test run before ICP would have to reject (see :func:`acceptance_report`);
+--prefilter-study measures how well the cheap tests one could run before the full ICP separate the accepted pairs
+from the rest (see :func:`prefilter_study`).
 """
 
 from __future__ import annotations
@@ -26,13 +28,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from pssnet_core.evaluation.observation_model import MultiDeltaView  # noqa: E402
 from pssnet_core.evaluation.plausible import (  # noqa: E402
     EvalView,
+    MeshSource,
     MeshTable,
     PlausibleConfig,
     PlausibleSets,
     ProceduralMeshes,
+    _PairJudge,
     compute_plausible_sets,
+    icp_cloud,
 )
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config  # noqa: E402
 
@@ -90,6 +96,85 @@ def acceptance_report(sets: PlausibleSets, views: Sequence[EvalView]) -> list[st
     return lines
 
 
+def prefilter_study(sets: PlausibleSets, views: Sequence[EvalView], meshes: MeshSource, config: PlausibleConfig,
+                    coarse_points: int = 64, coarse_iterations: int = 10, sparse_pixels: int = 128) -> list[str]:
+    """Lines on cheap pre-ICP tests: how many pairs each could reject without rejecting one accepted pair.
+
+    Every pair (reference i, candidate j) of the computed references gets these scores, the larger the less
+    plausible, and each is reported with the fraction of all pairs scoring above the largest score of an accepted
+    pair (what the test could reject at the threshold the data allows, with no safety margin):
+
+    - view descriptors: |height_i - height_j| and |width_i - width_j| of the observed points in the gravity-aligned
+      grid frames (vertical and sideways extent);
+    - cloud residual at the grid alignment ICP starts from: the larger of the mean nearest-neighbour distances
+      j -> i and i -> j of the two ICP clouds;
+    - the same residual after the full ICP (an upper bound on any residual-based test, which would need the ICP);
+    - a coarse copy of Alg. 2: ICP of ``coarse_points`` of j's points for ``coarse_iterations`` iterations, then
+      the fraction of ``sparse_pixels`` reliable pixels of i whose depth differs by more than the largest delta.
+    """
+    from dataclasses import replace
+
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    reg = o3d.pipelines.registration
+    clouds = [icp_cloud(v, config) for v in views]
+    judge = _PairJudge(views, meshes, clouds, config)
+    in_grid = [(c - v.grid_pose.origin) @ v.grid_pose.rotation for c, v in zip(clouds, views, strict=True)]
+    grid_trees = [cKDTree(c) for c in in_grid]
+    observed = [(v.depth_view.object_points() - v.grid_pose.origin) @ v.grid_pose.rotation for v in views]
+    height = np.array([np.ptp(p[:, 2]) for p in observed])
+    width = np.array([np.ptp(p[:, 1]) for p in observed])
+    coarse = []
+    for c in clouds:
+        pick = np.linspace(0, len(c) - 1, min(coarse_points, len(c))).round().astype(np.int64)
+        coarse.append(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c[pick])))
+    recording = replace(config.observation,
+                        outlier_fraction=max(config.observation.outlier_fraction, config.record_fraction))
+    largest = max(config.deltas)
+    names = ["height difference (m)", "width difference (m)", "cloud residual at the ICP start (m)",
+             "cloud residual after the full ICP (m)", "coarse ICP + sparse pixels: violating fraction"]
+    scores, accepted = [], []
+    for i in (int(r) for r in sets.references):
+        kept = {int(j) for j in sets.other[sets.ref == i]}
+        multi = MultiDeltaView(views[i].depth_view, recording, config.deltas, sparse_pixels=sparse_pixels)
+        if multi.sparse is None:
+            continue
+        rows, cols = multi.sparse
+        observed_depth = multi.any.observed[rows, cols]
+        u0, v0 = views[i].depth_view.offset
+        tree_i = cKDTree(clouds[i])
+        for j in range(len(views)):
+            if j == i:
+                continue
+            start = max(grid_trees[i].query(in_grid[j])[0].mean(), grid_trees[j].query(in_grid[i])[0].mean())
+            transform = judge.icp(i, j)
+            moved = clouds[j] @ transform[:3, :3].T + transform[:3, 3]
+            after = max(tree_i.query(moved)[0].mean(), cKDTree(moved).query(clouds[i])[0].mean())
+            init = views[i].grid_pose.to_matrix() @ np.linalg.inv(views[j].grid_pose.to_matrix())
+            rough = np.asarray(reg.registration_icp(
+                coarse[j], judge.cloud(i), config.icp_max_distance, init, reg.TransformationEstimationPointToPoint(),
+                reg.ICPConvergenceCriteria(max_iteration=coarse_iterations)).transformation)
+            expected = judge.raycaster(views[j].identity).depth_at(
+                rough @ views[j].object_pose, views[i].depth_view.intrinsics, cols + u0, rows + v0,
+                config.observation.pixel_offset)
+            violating = float((np.abs(expected - observed_depth) > largest).mean())
+            scores.append((abs(height[i] - height[j]), abs(width[i] - width[j]), start, after, violating))
+            accepted.append(j in kept)
+    table, ok = np.array(scores), np.array(accepted)
+    lines = [f"pre-ICP tests on {len(ok)} pairs ({int(ok.sum())} accepted); 'rejectable' = pairs scoring above every "
+             "accepted pair (no safety margin)"]
+    for k, name in enumerate(names):
+        worst = table[ok, k].max() if ok.any() else float("nan")
+        lines.append(f"{name}: accepted up to {worst:.4f}, all pairs median {np.median(table[:, k]):.4f}; "
+                     f"rejectable {(table[:, k] > worst).mean():.1%}")
+    for threshold in (0.1, 0.15, 0.2, 0.3):
+        above = table[:, 4] > threshold
+        lines.append(f"coarse check rejecting above {threshold:.0%} violating: rejects {above.mean():.1%} of pairs, "
+                     f"{int((above & ok).sum())} of them accepted")
+    return lines
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=None, help="a test dataset directory")
@@ -102,6 +187,8 @@ def main() -> int:
     parser.add_argument("--no-prefilter", action="store_true")
     parser.add_argument("--acceptance", action="store_true",
                         help="also report the accepted pairs: what any pre-ICP rejection test could save at most")
+    parser.add_argument("--prefilter-study", action="store_true",
+                        help="also score cheap pre-ICP tests on every pair (runs every pair's ICP again)")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     parser.add_argument("--record-fraction", type=float, default=0.01,
                         help="as `pssnet plausible` (default 0.01); 0 = strict sets, where the diameter bound prunes")
@@ -136,6 +223,9 @@ def main() -> int:
     print(f"  own ground truth plausible: {s['own_ground_truth_plausible_rate']}; mean set size: {s['mean_set_size']}")
     if args.acceptance:
         for line in acceptance_report(sets, views):
+            print(f"  {line}")
+    if args.prefilter_study:
+        for line in prefilter_study(sets, views, meshes, config):
             print(f"  {line}")
     if args.json:
         args.json.write_text(json.dumps({"source": source, "observations": m, "references": len(refs),
