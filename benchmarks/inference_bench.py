@@ -3,16 +3,18 @@
     .venv/bin/python benchmarks/inference_bench.py [--grids 32 64] [--samples 20] [--repeats 15]
         [--threads 2] [--device cpu|cuda] [--checkpoint32 PATH] [--checkpoint64 PATH]
     .venv/bin/python benchmarks/inference_bench.py --layers [--grids 32 64] [--samples 20]
+    .venv/bin/python benchmarks/inference_bench.py --tail-chunks [--grids 32 64] [--repeats 15]
 
 Without a checkpoint the model is randomly initialised (same FLOPs, so the same latency); the numeric
 difference between fp32 and the fast path is only meaningful on trained weights, so pass checkpoints for it.
 Prints one row per grid: median ms fp32 eager, median ms fast path (channels_last_3d + bf16 autocast where
 native), speed-up, and max |p_fast - p_fp32| and the fraction of voxels whose occupancy (> 0.5) differs.
 
-``--layers`` instead times every kernel-2 stride-2 stage, channels_last_3d: encoder convolutions at batch 1,
-decoder transposed convolutions on the batch of latents, each as torch's layer (oneDNN) and as the
-BlockConv3d / BlockDeconv3d GEMM form the models use, with the GMAC/s each reaches: the measurement
-behind that choice.
+``--tail-chunks`` times the decoder with its later stages whole and in chunks of rows, interleaved (see
+``Decoder3D.probabilities``). ``--layers`` instead times every kernel-2 stride-2 stage, channels_last_3d:
+encoder convolutions at batch 1, decoder transposed convolutions on the batch of latents, each as torch's
+layer (oneDNN) and as the BlockConv3d / BlockDeconv3d GEMM form the models use, with the GMAC/s each
+reaches: the measurement behind that choice.
 """
 
 from __future__ import annotations
@@ -99,6 +101,34 @@ def layer_stages(grid: int, samples: int, repeats: int) -> None:
                   f"{diff:>10.1e}")
 
 
+def tail_chunks(grid: int, samples: int, repeats: int) -> None:
+    """``Decoder3D.probabilities`` with its later stages whole and in chunks (the default), interleaved call by
+    call in this process (on a noisy machine only such ratios compare); checks that both give the same output."""
+    from pssnet_core.models import networks
+
+    torch.manual_seed(0)
+    decoder = build_model(default_config("pssnet", grid_size=grid)).eval().decoder
+    z = torch.randn(samples, decoder.dense.in_features)
+    variants = {"whole": 1 << 60, "chunks": networks._TAIL_CHUNK_BYTES}
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    outputs = {}
+    try:
+        with torch.inference_mode():
+            for round_ in range(repeats + 2):  # two warm-up rounds
+                for name, chunk_bytes in variants.items():
+                    networks._TAIL_CHUNK_BYTES = chunk_bytes
+                    t0 = time.perf_counter()
+                    outputs[name] = decoder.probabilities(z)
+                    if round_ >= 2:
+                        times[name].append((time.perf_counter() - t0) * 1000)
+    finally:
+        networks._TAIL_CHUNK_BYTES = variants["chunks"]
+    diff = (outputs["whole"] - outputs["chunks"]).abs().max().item()
+    print(f"grid {grid}, decoder on {samples} latents, {repeats} interleaved rounds (ms median / min): "
+          + ", ".join(f"{name} {statistics.median(t):.1f} / {min(t):.1f}" for name, t in times.items())
+          + f"; max |difference| {diff:.1e}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--grids", type=int, nargs="+", default=[32, 64])
@@ -111,9 +141,16 @@ def main() -> None:
     parser.add_argument("--checkpoint64", default=None)
     parser.add_argument("--layers", action="store_true",
                         help="time each kernel-2 stride-2 stage, torch layer vs Block layer")
+    parser.add_argument("--tail-chunks", action="store_true",
+                        help="time the decoder's later stages whole vs in chunks of rows (random weights)")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.tail_chunks:
+        print(f"torch {torch.__version__}, threads {torch.get_num_threads()}")
+        for grid in args.grids:
+            tail_chunks(grid, args.samples, args.repeats)
+        return
     if args.layers:
         print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, median of {args.repeats}")
         for grid in args.grids:

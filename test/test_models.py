@@ -19,6 +19,7 @@ from pssnet_core.models import (
     default_config,
     get_model_class,
     model_names,
+    networks,
 )
 from pssnet_core.models.base import bce_sum
 from pssnet_core.models.flow import RealNVP
@@ -296,13 +297,17 @@ def _torch_layer_chain(blocks: list[torch.nn.Module], cls: type) -> torch.nn.Seq
     return chain
 
 
+@pytest.mark.parametrize("chunk_bytes", [None, 500])
 @pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize(("channels", "grid", "batch_size"), [([3, 5, 4], 16, 1), ([4, 6], 12, 2)])
-def test_fused_inference_equals_torch_layers(channels, grid, batch_size, channels_last):
+def test_fused_inference_equals_torch_layers(channels, grid, batch_size, channels_last, chunk_bytes, monkeypatch):
     """Without autograd on the CPU the encoder and ``Decoder3D.probabilities`` run fused oneDNN matmuls and one
-    gather; the reference is a plain nn.Conv3d / nn.ConvTranspose3d chain on the same random weights."""
+    gather; the reference is a plain nn.Conv3d / nn.ConvTranspose3d chain on the same random weights. With a tiny
+    chunk size the decoder's later stages run in many chunks of rows (and a shorter last one)."""
     if not torch.backends.mkldnn.is_available():
         pytest.skip("this torch build has no oneDNN: the fused path does not run")
+    if chunk_bytes is not None:
+        monkeypatch.setattr(networks, "_TAIL_CHUNK_BYTES", chunk_bytes)
     torch.manual_seed(0)
     encoder, decoder = Encoder3D(2, channels, grid, 14), Decoder3D(7, channels, grid)
     with torch.no_grad():  # biases off zero so that a misplaced one shows

@@ -129,6 +129,11 @@ def grid_order(side: int, stages: int) -> torch.Tensor:
 # machine, waits for the slower thread (BENCHMARKS.md, "Inference").
 
 
+# Largest intermediate of one chunk of the decoder's later stages (see Decoder3D.probabilities): a few MB, about
+# the share of this CPU's 32 MB L3 cache one stage's output can have while its input and weights are there too.
+_TAIL_CHUNK_BYTES = 4 << 20
+
+
 class PackedLinear(NamedTuple):
     """y = activation(x @ weight.T + bias), weight in oneDNN's packed layout."""
 
@@ -258,8 +263,8 @@ class Decoder3D(nn.Module):
 
     def probabilities(self, z: torch.Tensor) -> torch.Tensor:
         """sigmoid(self(z)), (B, 1, N, N, N). Without autograd on the CPU in fp32 (``sample``'s case): each
-        stage one fused oneDNN matmul (+ bias + ReLU, the last + sigmoid) in block order, and one gather into
-        spatial order."""
+        stage one fused oneDNN matmul (+ bias + ReLU, the last + sigmoid) in block order, the stages after the
+        first on chunks of rows, and one gather into spatial order."""
         layers = [m for m in self.deconv if not isinstance(m, nn.ReLU)]
         if not (fused_inference_applies(z) and all(isinstance(m, BlockDeconv3d) for m in layers)):
             return torch.sigmoid(self(z).float())
@@ -274,9 +279,24 @@ class Decoder3D(nn.Module):
 
         dense, *stages = packed_linears(self, weights)
         rows = dense(z, "relu").view(-1, self.top)
-        for layer, stage in zip(layers[:-1], stages[:-1], strict=True):
+        # The first stage runs whole; the later ones chunk by chunk of its output rows (each row's outputs stay
+        # consecutive in block order), so that a chunk's intermediates stay in cache where the whole ones would
+        # go through memory (at 64^3 the 128 -> 64 output is 168 MB): 64^3 263 -> 200 ms, 32^3 the same
+        # (BENCHMARKS.md, "Inference"). Chunking the first stage too re-reads its 4 MB of weights per chunk.
+        head = min(1, len(layers) - 1)
+        for layer, stage in zip(layers[:head], stages[:head], strict=True):
             rows = stage(rows, "relu").view(-1, layer.out_channels)
-        probs = stages[-1](rows, "sigmoid").view(z.shape[0], -1)  # one channel: (B, N^3) in block order
+        tail, tail_stages = layers[head:], stages[head:]
+        widest = max([8 ** (k + 1) * layer.out_channels * 4 for k, layer in enumerate(tail[:-1])], default=1)
+        chunk = max(1, _TAIL_CHUNK_BYTES // widest)
+        grow = 8 ** len(tail)
+        probs = torch.empty(rows.shape[0] * grow, dtype=rows.dtype)  # one channel: (B * N^3) in block order
+        for start in range(0, rows.shape[0], chunk):
+            part = rows[start:start + chunk]
+            for layer, stage in zip(tail[:-1], tail_stages[:-1], strict=True):
+                part = stage(part, "relu").view(-1, layer.out_channels)
+            probs[start * grow:start * grow + part.shape[0] * 8] = tail_stages[-1](part, "sigmoid").view(-1)
+        probs = probs.view(z.shape[0], -1)
         n = self.side * 2 ** len(layers)
         # A gather instead of blocks_to_grid's 3 * (stages + 1) + 2-dimensional permuted copy, which torch
         # walks two elements at a time (1.3 vs 16 ms median, 20 x 32^3).
