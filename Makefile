@@ -35,6 +35,8 @@ clean:
 DATA ?= data/d32
 RUNS ?= runs
 TRAIN_MINUTES ?= 40
+# Reference observations scored per test set; 864 (a whole test set) scores every view: the three full sets'
+# plausible sets take ~2 h 40 min on 2 AVX2 cores (BENCHMARKS.md, "Plausible sets"), cached after the first run.
 EVAL_OBSERVATIONS ?= 48
 MODELS := pssnet vae vae_gan recgan
 PSSNET := $(VENV)/bin/pssnet
