@@ -112,32 +112,29 @@ def prefilter_study(sets: PlausibleSets, views: Sequence[EvalView], meshes: Mesh
     - a coarse copy of Alg. 2: ICP of ``coarse_points`` of j's points for ``coarse_iterations`` iterations, then
       the fraction of ``sparse_pixels`` reliable pixels of i whose depth differs by more than the largest delta.
     """
-    from dataclasses import replace
-
     import open3d as o3d
     from scipy.spatial import cKDTree
 
     reg = o3d.pipelines.registration
     clouds = [icp_cloud(v, config) for v in views]
     judge = _PairJudge(views, meshes, clouds, config)
-    in_grid = [(c - v.grid_pose.origin) @ v.grid_pose.rotation for c, v in zip(clouds, views, strict=True)]
+    in_grid = [v.grid_pose.camera_to_grid(c) * v.grid_pose.voxel_size for c, v in zip(clouds, views, strict=True)]
     grid_trees = [cKDTree(c) for c in in_grid]
-    observed = [(v.depth_view.object_points() - v.grid_pose.origin) @ v.grid_pose.rotation for v in views]
+    observed = [v.grid_pose.camera_to_grid(v.depth_view.object_points()) * v.grid_pose.voxel_size for v in views]
     height = np.array([np.ptp(p[:, 2]) for p in observed])
     width = np.array([np.ptp(p[:, 1]) for p in observed])
     coarse = []
     for c in clouds:
         pick = np.linspace(0, len(c) - 1, min(coarse_points, len(c))).round().astype(np.int64)
         coarse.append(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c[pick])))
-    recording = replace(config.observation,
-                        outlier_fraction=max(config.observation.outlier_fraction, config.record_fraction))
     largest = max(config.deltas)
     names = ["height difference (m)", "width difference (m)", "cloud residual at the ICP start (m)",
              "cloud residual after the full ICP (m)", "coarse ICP + sparse pixels: violating fraction"]
     scores, accepted = [], []
     for i in (int(r) for r in sets.references):
         kept = {int(j) for j in sets.other[sets.ref == i]}
-        multi = MultiDeltaView(views[i].depth_view, recording, config.deltas, sparse_pixels=sparse_pixels)
+        multi = MultiDeltaView(views[i].depth_view, config.recording_observation, config.deltas,
+                               sparse_pixels=sparse_pixels)
         if multi.sparse is None:
             continue
         rows, cols = multi.sparse
@@ -151,9 +148,9 @@ def prefilter_study(sets: PlausibleSets, views: Sequence[EvalView], meshes: Mesh
             transform = judge.icp(i, j)
             moved = clouds[j] @ transform[:3, :3].T + transform[:3, 3]
             after = max(tree_i.query(moved)[0].mean(), cKDTree(moved).query(clouds[i])[0].mean())
-            init = views[i].grid_pose.to_matrix() @ np.linalg.inv(views[j].grid_pose.to_matrix())
             rough = np.asarray(reg.registration_icp(
-                coarse[j], judge.cloud(i), config.icp_max_distance, init, reg.TransformationEstimationPointToPoint(),
+                coarse[j], judge.cloud(i), config.icp_max_distance, judge.initial_transform(i, j),
+                reg.TransformationEstimationPointToPoint(),
                 reg.ICPConvergenceCriteria(max_iteration=coarse_iterations)).transformation)
             expected = judge.raycaster(views[j].identity).depth_at(
                 rough @ views[j].object_pose, views[i].depth_view.intrinsics, cols + u0, rows + v0,

@@ -95,11 +95,10 @@ def _field_sums(owners: np.ndarray, fields: np.ndarray | None, points: np.ndarra
     be nearest to lies inside, so the distances there are the whole grid's, exactly; the box of a completion and
     its plausible shapes is about a quarter of the 32^3 grid, which makes this ~3x faster than whole fields.
     """
-    occ = points.reshape(len(points), -1)
     if fields is not None:
         # float64 accumulation: sums of up to N^3 distances.
         flat = np.where(np.isfinite(fields), fields, 0).reshape(len(owners), -1)
-        return flat.astype(np.float64) @ occ.T.astype(np.float64)
+        return flat.astype(np.float64) @ points.reshape(len(points), -1).T.astype(np.float64)
     union = points.any(axis=0)
     sums = np.zeros((len(owners), len(points)))
     for o, owner in enumerate(owners):

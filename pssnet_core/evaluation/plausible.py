@@ -166,6 +166,13 @@ class PlausibleConfig:
         if self.icp_max_distance <= 0 or self.icp_iterations < 1:
             raise PlausibleSetError("icp_max_distance must be > 0 and icp_iterations >= 1")
 
+    @property
+    def recording_observation(self) -> ObservationModelConfig:
+        """The observation model candidates are judged with: the recording allowance (the largest any later query
+        may use), so nothing it could accept is lost; :meth:`PlausibleSets.members` applies the smaller ones."""
+        return replace(self.observation,
+                       outlier_fraction=max(self.observation.outlier_fraction, self.record_fraction))
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["deltas"] = list(self.deltas)
@@ -341,13 +348,15 @@ class _PairJudge:
             self._clouds[index] = self.o3d.geometry.PointCloud(self.o3d.utility.Vector3dVector(points))
         return self._clouds[index]
 
+    def initial_transform(self, i: int, j: int) -> np.ndarray:
+        """Where ICP starts: the transform mapping j's observation grid onto i's (j's camera frame -> i's)."""
+        return self.views[i].grid_pose.to_matrix() @ np.linalg.inv(self.views[j].grid_pose.to_matrix())
+
     def icp(self, i: int, j: int) -> np.ndarray:
         """Transform from j's camera frame to i's aligning j's observed cloud to i's."""
         reg = self.o3d.pipelines.registration
-        vi, vj = self.views[i], self.views[j]
-        init = vi.grid_pose.to_matrix() @ np.linalg.inv(vj.grid_pose.to_matrix())
         result = reg.registration_icp(
-            self.cloud(j), self.cloud(i), self.config.icp_max_distance, init,
+            self.cloud(j), self.cloud(i), self.config.icp_max_distance, self.initial_transform(i, j),
             reg.TransformationEstimationPointToPoint(),
             reg.ICPConvergenceCriteria(max_iteration=self.config.icp_iterations))
         return np.asarray(result.transformation, dtype=np.float64)
@@ -357,10 +366,7 @@ class _PairJudge:
         cfg = self.config
         deltas = cfg.deltas
         view_i = self.views[i]
-        # Judged with the recording allowance (the largest any later query may use), so nothing it could
-        # accept is lost; the strict/default allowance is applied in PlausibleSets.members.
-        recording = replace(cfg.observation,
-                            outlier_fraction=max(cfg.observation.outlier_fraction, cfg.record_fraction))
+        recording = cfg.recording_observation
         multi = MultiDeltaView(view_i.depth_view, recording, deltas,
                                sparse_pixels=cfg.sparse_pixels if cfg.prefilter else 0)
         use_prefilter = cfg.prefilter and recording.gradient == "observed" and not recording.has_allowance

@@ -287,7 +287,8 @@ class Decoder3D(nn.Module):
         for layer, stage in zip(layers[:head], stages[:head], strict=True):
             rows = stage(rows, "relu").view(-1, layer.out_channels)
         tail, tail_stages = layers[head:], stages[head:]
-        widest = max([8 ** (k + 1) * layer.out_channels * 4 for k, layer in enumerate(tail[:-1])], default=1)
+        widest = max([8 ** (k + 1) * layer.out_channels * rows.element_size() for k, layer in enumerate(tail[:-1])],
+                     default=1)
         chunk = max(1, _TAIL_CHUNK_BYTES // widest)
         grow = 8 ** len(tail)
         probs = torch.empty(rows.shape[0] * grow, dtype=rows.dtype)  # one channel: (B * N^3) in block order
