@@ -35,6 +35,8 @@ clean:
 DATA ?= data/d32
 RUNS ?= runs
 TRAIN_MINUTES ?= 40
+# Set TRAIN_STEPS to budget each run in optimiser steps instead (fair when other work shares the cores).
+TRAIN_STEPS ?=
 # Reference observations scored per test set; 864 (a whole test set) scores every view: the three full sets'
 # plausible sets take ~2 h 40 min on 2 AVX2 cores (BENCHMARKS.md, "Plausible sets"), cached after the first run.
 EVAL_OBSERVATIONS ?= 48
@@ -46,12 +48,12 @@ datasets: setup
 	$(PSSNET) dataset build --family all --split val --out $(DATA) --grid 32 --workers 2
 	$(PSSNET) dataset build --family all --split test --out $(DATA) --grid 32 --workers 2
 
-# Every model gets the same budget: TRAIN_MINUTES of wall clock on one CPU thread (two runs side by side on
-# a 2-core machine: `make -j2 train-pssnet train-vae`), validated on the val split every 500 steps.
+# Every model gets the same budget: TRAIN_MINUTES of wall clock (or TRAIN_STEPS steps) on one CPU thread (two
+# runs side by side on a 2-core machine: `make -j2 train-pssnet train-vae`), validated on val every 500 steps.
 train-%: setup
 	$(PSSNET) train --model $* --data $(DATA)/train/mugs,$(DATA)/train/ycb \
 	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/$*32 --epochs 30 \
-	  --max-minutes $(TRAIN_MINUTES) --threads 1 --val-every 500 --no-progress --seed 0
+	  $(if $(TRAIN_STEPS),--max-steps $(TRAIN_STEPS),--max-minutes $(TRAIN_MINUTES)) --threads 1 --val-every 500 --no-progress --seed 0
 
 train-all: $(addprefix train-,$(MODELS))
 
