@@ -11,6 +11,7 @@ observations are computed (evenly spaced), each against every other observation 
 for the full quadratic set is extrapolated from the measured rate (the script says so when it does).
 
 --acceptance also reports what any test run before ICP would have to reject (see :func:`acceptance_report`);
+--icp-scaling N times N ICPs in one process and in two processes at once (how open3d's ICP uses the cores).
 --prefilter-study measures how well the cheap tests one could run before the full ICP separate the accepted pairs
 from the rest (see :func:`prefilter_study`).
 """
@@ -172,6 +173,53 @@ def prefilter_study(sets: PlausibleSets, views: Sequence[EvalView], meshes: Mesh
     return lines
 
 
+def _timed_icps(clouds: Sequence[np.ndarray], starts: Sequence[np.ndarray], max_distance: float,
+                iterations: int) -> tuple[float, float]:
+    """Wall and CPU seconds (every thread of this process) of ICP from each of clouds[1:] onto clouds[0]."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(clouds[0])))
+    sources = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(c))) for c in clouds[1:]]
+    wall, cpu = time.perf_counter(), time.process_time()
+    for source, start in zip(sources, starts, strict=True):
+        reg.registration_icp(source, target, max_distance, start, reg.TransformationEstimationPointToPoint(),
+                             reg.ICPConvergenceCriteria(max_iteration=iterations))
+    return time.perf_counter() - wall, time.process_time() - cpu
+
+
+def _started(_: int) -> None:
+    import open3d  # noqa: F401  (imported before the timed calls, as in a warm Ray worker)
+
+    time.sleep(1.0)  # long enough that the pool hands the two calls to two processes
+
+
+def icp_scaling(views: Sequence[EvalView], meshes: MeshSource, config: PlausibleConfig, count: int) -> list[str]:
+    """Lines on how ICP uses the cores: ``count`` ICPs of this set's pairs (reference 0 against the next views)
+    in this process, then the same in two processes at once.
+
+    open3d parallelises one ICP over threads of its own (``OMP_NUM_THREADS`` does not limit them), so one process
+    already keeps more than one core busy; a second process then adds only what those threads left idle.
+    """
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    count = min(count, len(views) - 1)
+    clouds = [icp_cloud(v, config) for v in views[:count + 1]]
+    judge = _PairJudge(views, meshes, clouds, config)
+    starts = [judge.initial_transform(0, j) for j in range(1, count + 1)]
+    task = (clouds, starts, config.icp_max_distance, config.icp_iterations)
+    wall1, cpu1 = _timed_icps(*task)
+    with ProcessPoolExecutor(2, mp_context=get_context("spawn")) as pool:
+        list(pool.map(_started, range(2)))
+        both = [f.result() for f in [pool.submit(_timed_icps, *task) for _ in range(2)]]
+    wall2 = max(w for w, _ in both)
+    return [f"ICP of {count} pairs (reference 0 vs views 1..{count}): one process {wall1:.2f} s wall, "
+            f"{cpu1:.2f} s CPU ({cpu1 / wall1:.2f} cores busy, {1e3 * wall1 / count:.2f} ms a pair)",
+            "  two processes at once: " + "; ".join(f"{w:.2f} s wall, {c:.2f} s CPU" for w, c in both)
+            + f"; throughput {2 * wall1 / wall2:.2f}x one process's"]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", default=None, help="a test dataset directory")
@@ -186,6 +234,8 @@ def main() -> int:
                         help="also report the accepted pairs: what any pre-ICP rejection test could save at most")
     parser.add_argument("--prefilter-study", action="store_true",
                         help="also score cheap pre-ICP tests on every pair (runs every pair's ICP again)")
+    parser.add_argument("--icp-scaling", type=int, default=0, metavar="N",
+                        help="also time N ICPs in one process and in two at once (how ICP uses the cores)")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     parser.add_argument("--record-fraction", type=float, default=0.01,
                         help="as `pssnet plausible` (default 0.01); 0 = strict sets, where the diameter bound prunes")
@@ -215,14 +265,17 @@ def main() -> int:
     print(f"computed {len(refs)} references x {m - 1} candidates = {s['pairs']} pairs in {s['seconds']:.1f} s "
           f"({s['executor']}): {s['pairs_per_second']:.0f} pairs/s")
     print(f"  pruned before ICP (diameter bound): {s['pruned_by_prefilter']}; rejected on sparse pixels: "
-          f"{s['rejected_on_sparse_pixels']}; ICP cpu {s['icp_seconds_cpu']:.1f} s, judge cpu "
-          f"{s['judge_seconds_cpu']:.1f} s")
+          f"{s['rejected_on_sparse_pixels']}; ICP {s['icp_seconds']:.1f} s, judge "
+          f"{s['judge_seconds']:.1f} s (wall time, summed over references)")
     print(f"  own ground truth plausible: {s['own_ground_truth_plausible_rate']}; mean set size: {s['mean_set_size']}")
     if args.acceptance:
         for line in acceptance_report(sets, views):
             print(f"  {line}")
     if args.prefilter_study:
         for line in prefilter_study(sets, views, meshes, config):
+            print(f"  {line}")
+    if args.icp_scaling:
+        for line in icp_scaling(views, meshes, config, args.icp_scaling):
             print(f"  {line}")
     if args.json:
         args.json.write_text(json.dumps({"source": source, "observations": m, "references": len(refs),

@@ -536,7 +536,7 @@ def compute_plausible_sets(views: Sequence[EvalView], meshes: MeshSource, config
         "rejected_on_sparse_pixels": early, "resumed_references": len(done),
         "seconds": elapsed, "pairs_per_second": computed_pairs / max(elapsed, 1e-9),
         "workers": runner.parallelism if todo else 0, "executor": runner.describe() if todo else "resumed",
-        "icp_seconds_cpu": sum(o["t_icp"] for o in ordered), "judge_seconds_cpu": sum(o["t_judge"] for o in ordered),
+        "icp_seconds": sum(o["t_icp"] for o in ordered), "judge_seconds": sum(o["t_judge"] for o in ordered),
         "own_ground_truth_plausible_rate": {str(d): float(own[:, k].mean()) if len(own) else float("nan")
                                             for k, d in enumerate(deltas)},
         "config": config.to_dict(),
