@@ -138,3 +138,22 @@ def test_grid_chamfer_over_boxes_equals_whole_fields_and_kdtree():
             pb = (np.argwhere(b[p]) + 0.5) * VOXEL
             assert boxes[s, p] == pytest.approx(chamfer_distance(pa, pb), rel=1e-6)
     assert np.all(boxes[0] == math.sqrt(3) * n * VOXEL)
+
+
+def test_identical_grids_share_one_distance_transform(monkeypatch):
+    """Repeated grids (a deterministic model's samples) are transformed once, and each row is still its own."""
+    from pssnet_core.evaluation import metrics
+
+    rng = np.random.default_rng(2)
+    n = 16
+    distinct = np.zeros((3, n, n, n), bool)
+    for k, g in enumerate(distinct):
+        g[2 + k:9 + k, 3:10, 4:8 + k] = rng.random((7, 7, 4 + k)) < 0.7
+    b = np.roll(distinct, 3, axis=1)
+    order = [2, 0, 2, 1, 0, 2]
+    calls = []
+    real = metrics.ndimage.distance_transform_edt
+    monkeypatch.setattr(metrics.ndimage, "distance_transform_edt", lambda x: calls.append(1) or real(x))
+    repeated = chamfer_matrix(distinct[order], b, VOXEL)
+    assert len(calls) == 3 + 3  # the three distinct grids of a, then the three of b
+    np.testing.assert_array_equal(repeated, chamfer_matrix(distinct, b, VOXEL)[order])

@@ -94,21 +94,28 @@ def _field_sums(owners: np.ndarray, fields: np.ndarray | None, points: np.ndarra
     transform is taken only over the box around its own voxels and every voxel of ``points``: every voxel it can
     be nearest to lies inside, so the distances there are the whole grid's, exactly; the box of a completion and
     its plausible shapes is about a quarter of the 32^3 grid, which makes this ~3x faster than whole fields.
+    Owners that are the same grid are transformed once.
     """
     if fields is not None:
         # float64 accumulation: sums of up to N^3 distances.
         flat = np.where(np.isfinite(fields), fields, 0).reshape(len(owners), -1)
         return flat.astype(np.float64) @ points.reshape(len(points), -1).T.astype(np.float64)
     union = points.any(axis=0)
-    sums = np.zeros((len(owners), len(points)))
-    for o, owner in enumerate(owners):
+    # Identical owners share one transform (a deterministic model's samples are all one grid).
+    # (By bytes in a dict: np.unique(axis=0) takes ~40 ms for 100 grids of 32^3, this ~1.)
+    ids: dict[bytes, int] = {}
+    inverse = np.array([ids.setdefault(row.tobytes(), len(ids))
+                        for row in np.packbits(owners.reshape(len(owners), -1), axis=1)], dtype=np.intp)
+    distinct = np.unique(inverse, return_index=True)[1]  # the first owner of each distinct grid
+    sums = np.zeros((len(distinct), len(points)))
+    for o, owner in enumerate(owners[distinct]):
         if not owner.any():
             continue
         box = _bounding_box(owner | union)
         # float32 as distance_fields stores them, so both ways give the same distances.
         field = ndimage.distance_transform_edt(~owner[box]).astype(np.float32)
         sums[o] = points[(slice(None), *box)].reshape(len(points), -1).astype(np.float64) @ field.ravel()
-    return sums
+    return sums[inverse]
 
 
 def chamfer_matrix(a: np.ndarray, b: np.ndarray, voxel_size: float, empty_distance: float | None = None,
