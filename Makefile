@@ -38,7 +38,7 @@ TRAIN_MINUTES ?= 40
 # Set TRAIN_STEPS to budget each run in optimiser steps instead (fair when other work shares the cores).
 TRAIN_STEPS ?=
 # Reference observations scored per test set; 864 (a whole test set) scores every view: the three full sets'
-# plausible sets take ~2 h 40 min on 2 AVX2 cores (BENCHMARKS.md, "Plausible sets"), cached after the first run.
+# plausible sets took 2 h 35 min on 2 AVX2 cores (BENCHMARKS.md, "Plausible sets"), cached after the first run.
 EVAL_OBSERVATIONS ?= 48
 MODELS := pssnet vae vae_gan recgan
 PSSNET := $(VENV)/bin/pssnet
