@@ -7,7 +7,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export FASTRTPS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_profile.xml
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup demo test test-slow lint colcon clean datasets train-all results
+.PHONY: setup demo test test-slow lint colcon clean datasets train-all results results-shipped
 
 setup:
 	@bash scripts/setup.sh
@@ -37,9 +37,11 @@ RUNS ?= runs
 TRAIN_MINUTES ?= 40
 # Set TRAIN_STEPS to budget each run in optimiser steps instead (fair when other work shares the cores).
 TRAIN_STEPS ?=
-# Reference observations scored per test set; 864 (a whole test set) scores every view: the three full sets'
-# plausible sets took 2 h 35 min on 2 AVX2 cores (BENCHMARKS.md, "Plausible sets"), cached after the first run.
-EVAL_OBSERVATIONS ?= 48
+# Reference observations scored per test set; 864 (a whole test set, the default) scores every view. The
+# three full sets' plausible sets took 2 h 35 min on 2 AVX2 cores (BENCHMARKS.md, "Plausible sets"), cached
+# under each test set after the first run; scoring the four models on them takes ~45 min more. A quick look:
+# EVAL_OBSERVATIONS=48 (48 evenly spaced references per set: ~30 min, its own plausible sets included).
+EVAL_OBSERVATIONS ?= 864
 MODELS := pssnet vae vae_gan recgan
 PSSNET := $(VENV)/bin/pssnet
 
@@ -64,6 +66,12 @@ results: setup
 	$(PSSNET) handles --models pssnet,vae,vae_gan,recgan \
 	  --checkpoints $(RUNS)/pssnet32/best.pt,$(RUNS)/vae32/best.pt,$(RUNS)/vae_gan32/best.pt,$(RUNS)/recgan32/best.pt \
 	  --data $(DATA)/test --samples 20 --out results/handles --no-progress
+
+# The shipped model (pssnet_core/checkpoints) on the same test sets, every view by default.
+results-shipped: setup
+	$(PSSNET) evaluate --models pssnet_mix16 --checkpoints pssnet_core/checkpoints/default_pssnet_32.pt \
+	  --data $(DATA)/test --samples 100 --max-observations $(EVAL_OBSERVATIONS) --dense-mugs 1 --workers 2 \
+	  --out results/shipped --no-progress
 
 # ---- Issue 11: data at scale, equal-budget runs, ambiguity (README "Research workflow").
 DATA_LARGE ?= data/d32_large

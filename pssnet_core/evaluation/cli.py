@@ -1,7 +1,8 @@
 """``pssnet plausible`` (build/cache plausible sets), ``pssnet evaluate`` (the paper's table and figures),
 ``pssnet handles`` (where sampled mugs put a hidden or visible handle), ``pssnet ambiguity`` (samples against
-what each view allows: plausible handle arcs, plausible box depths through a slit) and ``pssnet memorisation``
-(completions against the nearest training shape)."""
+what each view allows: plausible handle arcs, plausible box depths through a slit), ``pssnet memorisation``
+(completions against the nearest training shape) and ``pssnet compare`` (paired differences between the methods
+of an evaluation)."""
 
 from __future__ import annotations
 
@@ -181,6 +182,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--no-progress", action="store_true")
     m.set_defaults(func=_guard(_memorisation_command))
+
+    c = subparsers.add_parser(
+        "compare", help="paired differences between methods of an evaluation, with bootstrap intervals",
+        description="From `pssnet evaluate`'s per_observation.csv (one or several runs on the same test sets): "
+                    "for every method, the mean difference to a baseline per paper subset and delta, paired "
+                    "over the observations both were scored on, with a percentile bootstrap interval. Writes "
+                    "OUT (markdown) and OUT with .csv.")
+    c.add_argument("--per-observation", required=True,
+                   help="per_observation.csv files, comma separated (rows of one observation pair by set and index)")
+    c.add_argument("--methods", required=True, help="methods to compare, comma separated")
+    c.add_argument("--baseline", required=True, help="the method every other is compared with")
+    c.add_argument("--metric", default="plausible_diversity_mm",
+                   help="best_accuracy_mm, coverage_mm, plausibility_mm or plausible_diversity_mm (default)")
+    c.add_argument("--references", type=int, default=None,
+                   help="only the observations `pssnet evaluate --max-observations N` picks (default: all rows)")
+    c.add_argument("--confidence", type=float, default=0.95)
+    c.add_argument("--resamples", type=int, default=10_000)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--out", default="results/comparison.md", help="markdown file (the CSV goes beside it)")
+    c.set_defaults(func=_guard(_compare_command))
 
 
 def _guard(handler):
@@ -538,4 +559,27 @@ def _memorisation_command(args: argparse.Namespace) -> int:
     files = run_memorisation(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads))
     print(files["markdown"].read_text())
     print("wrote " + ", ".join(str(p) for p in files.values()))
+    return 0
+
+
+def _compare_command(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from pssnet_core.evaluation.compare import CompareConfig, markdown, paired_differences, read_per_observation
+    from pssnet_core.evaluation.report import write_csv
+
+    config = CompareConfig(metric=args.metric, confidence=args.confidence, resamples=args.resamples, seed=args.seed,
+                           references=args.references)
+    rows = read_per_observation(p.strip() for p in args.per_observation.split(",") if p.strip())
+    methods = [m for m in _models(args.methods) if m != args.baseline]
+    differences = paired_differences(rows, methods, args.baseline, config)
+    if not differences:
+        raise EvaluationCliError(f"no observation was scored by both the baseline {args.baseline!r} and {methods}")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    text = markdown(differences, config)
+    out.write_text(text)
+    table = write_csv(out.with_suffix(".csv"), [asdict(d) for d in differences])
+    print(text)
+    print(f"wrote {out}, {table}")
     return 0
