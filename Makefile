@@ -39,7 +39,7 @@ TRAIN_MINUTES ?= 40
 TRAIN_STEPS ?=
 # Reference observations scored per test set; 864 (a whole test set, the default) scores every view. The
 # three full sets' plausible sets took 2 h 35 min on 2 AVX2 cores (BENCHMARKS.md, "Plausible sets"), cached
-# under each test set after the first run; scoring the four models on them takes ~45 min more. A quick look:
+# under each test set after the first run; scoring the four models on them took 38 min more. A quick look:
 # EVAL_OBSERVATIONS=48 (48 evenly spaced references per set: ~30 min, its own plausible sets included).
 EVAL_OBSERVATIONS ?= 864
 MODELS := pssnet vae vae_gan recgan
