@@ -24,7 +24,7 @@ from pssnet_core.evaluation.plausible import (
     cached_plausible_sets,
     dataset_fingerprint,
 )
-from pssnet_core.evaluation.testsets import TEST_SETS, find_test_set, load_test_set
+from pssnet_core.evaluation.testsets import TEST_SETS, evenly_spaced_views, find_test_set, load_test_set
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 
 PAPER_DELTA = 0.04
@@ -230,7 +230,7 @@ def _references(count: int, max_observations: int | None) -> list[int] | None:
         return None
     if max_observations < 1:
         raise EvaluationCliError(f"--max-observations must be >= 1, got {max_observations}")
-    return sorted(set(np.linspace(0, count - 1, max_observations).round().astype(int).tolist()))
+    return evenly_spaced_views(count, max_observations)
 
 
 def _dense_mug_views(views: list[Any], count: int, step: int) -> list[int]:

@@ -20,6 +20,7 @@ from scipy import stats
 
 from pssnet_core.evaluation.metrics import METRIC_NAMES
 from pssnet_core.evaluation.report import SUBSETS
+from pssnet_core.evaluation.testsets import evenly_spaced_views
 
 
 class CompareError(ValueError):
@@ -82,13 +83,6 @@ def read_per_observation(paths: Iterable[str | Path]) -> list[dict[str, Any]]:
     return rows
 
 
-def evenly_spaced_references(count: int, references: int) -> set[int]:
-    """The observation indices `pssnet evaluate --max-observations` scores (without --dense-mugs)."""
-    if references >= count:
-        return set(range(count))
-    return set(np.linspace(0, count - 1, references).round().astype(int).tolist())
-
-
 def paired_differences(rows: Sequence[dict[str, Any]], methods: Sequence[str], baseline: str,
                        config: CompareConfig | None = None) -> list[PairedDifference]:
     """Mean ``method - baseline`` of ``config.metric`` over the observations both were scored on, per delta and
@@ -101,7 +95,8 @@ def paired_differences(rows: Sequence[dict[str, Any]], methods: Sequence[str], b
     set_sizes: dict[str, int] = {}
     for r in rows:
         set_sizes[r["set"]] = max(set_sizes.get(r["set"], 0), r["index"] + 1)
-    chosen = ({name: evenly_spaced_references(size, config.references) for name, size in set_sizes.items()}
+    # the views `pssnet evaluate --max-observations N` scores (without --dense-mugs)
+    chosen = ({name: set(evenly_spaced_views(size, config.references)) for name, size in set_sizes.items()}
               if config.references is not None else None)
     # (delta, set, index) -> method -> row: the pairing key of one observation
     by_key: dict[tuple[float, str, int], dict[str, dict[str, Any]]] = {}

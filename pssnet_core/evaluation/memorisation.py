@@ -329,11 +329,13 @@ def dataset_roots(paths: Sequence[str | Path]) -> list[Path]:
 
 
 def _spaced(count: int, limit: int | None) -> list[int]:
+    from pssnet_core.evaluation.testsets import evenly_spaced_views
+
     if limit is None or limit >= count:
         return list(range(count))
     if limit < 1:
         raise MemorisationError(f"max_views must be >= 1, got {limit}")
-    return sorted(set(np.linspace(0, count - 1, limit).round().astype(int).tolist()))
+    return evenly_spaced_views(count, limit)
 
 
 def run_memorisation(run: MemorisationRun, completers: Mapping[str, Any]) -> dict[str, Path]:
