@@ -123,6 +123,7 @@ def fill_response(response: SampleCompletions.Response, result: PipelineResult,
     response.voxel_size = float(result.voxel_size)
     response.known_occupied = conversions.points_to_pointcloud2(result.known_occupied, header)
     response.completions = [conversions.points_to_pointcloud2(c, header) for c in result.completions]
+    response.sample_weights = [float(w) for w in result.weights]
     poses, scores, widths = grasp_fields(result)
     response.grasps = PoseArray(header=header, poses=poses)
     response.grasp_scores, response.grasp_widths = scores, widths

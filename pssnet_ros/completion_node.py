@@ -25,6 +25,7 @@ All outputs carry the input's header. The node only converts messages; the work 
 from __future__ import annotations
 
 import json
+import math
 import sys
 import threading
 import time
@@ -111,6 +112,7 @@ class CompletionNode(LifecycleNode):
         self._latest: SyncedSet | None = None  # newest synchronised set (the service's default input)
         self.pipeline: CompletionPipeline | None = None  # loaded on configure, dropped on cleanup
         self._configure_error = ""
+        self._up_disagreement_deg = math.nan  # of the last input the pipeline checked (NaN: not checked)
         self._active = False
         self._endpoints: list[Any] = []  # subscriptions and the sample service: they exist while active
         self._outputs: dict[str, Any] = {}  # lifecycle publishers: created on configure, enabled while active
@@ -357,8 +359,21 @@ class CompletionNode(LifecycleNode):
         pipeline = self.pipeline
         if pipeline is None:
             raise InputError("the node is not configured (no model loaded)")
-        return complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"], num_samples,
-                                 compute_grasps)
+        result, header = complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"],
+                                           num_samples, compute_grasps)
+        self._up_disagreement_deg = result.up_disagreement_deg
+        if self._up_disagreement_deg > self._values["up_check_deg"] > 0:
+            self.get_logger().warning(f"up_vector looks wrong: {self.up_warning()}",
+                                      throttle_duration_sec=WARN_THROTTLE_S)
+        return result, header
+
+    def up_warning(self) -> str:
+        """What the last checked input said about ``up_vector`` ("" when it agreed or was not checked)."""
+        tilt, limit = self._up_disagreement_deg, self._values["up_check_deg"]
+        if not tilt > limit > 0:
+            return ""
+        return (f"the support plane around the object is tilted {tilt:.0f} deg from up_vector (up_check_deg "
+                f"{limit:g}); set up_vector to the direction against gravity in the camera frame, or estimate_up")
 
     def _request_input(self, request: SampleCompletions.Request) -> tuple[Image, Image, CameraInfo]:
         if request.depth.height == 0:
@@ -411,7 +426,8 @@ class CompletionNode(LifecycleNode):
         ms = {name: seconds * 1000 for name, seconds in result.timings.items()}
         response.message = (f"{result.num_samples} samples, {points} voxels, {len(response.grasps.poses)} grasps, seed "
                             f"{result.seed}, {(time.perf_counter() - t0) * 1000:.0f} ms (observation "
-                            f"{ms['observe']:.1f}, network {ms['network']:.1f}, grasps {ms['grasps']:.1f} ms)")
+                            f"{ms['observe']:.1f}, network {ms['network']:.1f}, grasps {ms['grasps']:.1f} ms)"
+                            + (f"; {result.note}" if result.note else ""))
         return response
 
     def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -424,10 +440,13 @@ class CompletionNode(LifecycleNode):
         pipeline = self.pipeline
         model = {} if pipeline is None else {
             "model": f"{pipeline.completer.model_name} {pipeline.completer.grid_size}^3",
-            "device": self._values["device"], "precision": pipeline.completer.precision}
+            "device": self._values["device"], "precision": pipeline.completer.precision,
+            "sampler": self._values["sampler"],
+            "up_vector vs support plane (deg)": f"{self._up_disagreement_deg:.1f}"}
         state = "active" if self._active else ("inactive" if pipeline is not None else "unconfigured")
         status = diagnostic_status(f"{NODE_NAME}: completion", self.get_fully_qualified_name(), state,
-                                   self._health.snapshot(), self.stats(), model, self._configure_error)
+                                   self._health.snapshot(), self.stats(), model, self._configure_error,
+                                   self.up_warning())
         self._pub_diagnostics.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()),
                                                       status=[status]))
 

@@ -74,7 +74,7 @@ class CompletionHealth:
 
 
 def diagnostic_status(name: str, hardware_id: str, state: str, health: HealthSnapshot, counters: dict[str, int],
-                      model: dict[str, str], error: str = "") -> DiagnosticStatus:
+                      model: dict[str, str], error: str = "", warning: str = "") -> DiagnosticStatus:
     """One status: OK when active, WARN when inactive or unconfigured, ERROR after a failed configure.
 
     Args:
@@ -85,11 +85,15 @@ def diagnostic_status(name: str, hardware_id: str, state: str, health: HealthSna
         counters: the node's counters (``CompletionNode.stats``); the dropped sets are reported by reason.
         model: "model", "device", "precision" when a model is loaded, else empty.
         error: the last configure error, if any.
+        warning: a problem with the input that does not stop the node (e.g. an up vector the support plane
+            disagrees with): an active node reports WARN with it.
     """
     if error:
         level, message = DiagnosticStatus.ERROR, f"{state}: {error}"
     elif state != "active":
         level, message = DiagnosticStatus.WARN, f"{state}: not serving"
+    elif warning:
+        level, message = DiagnosticStatus.WARN, f"active, {health.rate_hz:.2f} completions/s; {warning}"
     else:
         level, message = DiagnosticStatus.OK, f"active, {health.rate_hz:.2f} completions/s"
     values = {

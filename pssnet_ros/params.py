@@ -139,6 +139,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("box_temperature", "factor on the posterior sigma of PSSNet's box latent (wider = more diverse "
               "hidden sides); 0 = the value calibrated with the model", 0.0, 10.0, field="box_temperature",
               constraints="0 or 1 for models without a box part"),
+    ParamSpec("sampler", "posterior = the model's samples as drawn; checked = many proposals, those the view "
+              "rules out rejected, the rest spread over what the view allows and weighted", field="sampler",
+              choices=("posterior", "checked"), constraints="checked needs a latent-variable model"),
+    ParamSpec("check_delta", "checked sampler: depth tolerance of its plausibility check, metres", 0.001, 0.2,
+              field="check_delta"),
+    ParamSpec("proposals_per_sample", "checked sampler: proposals decoded per requested sample", 1, 100,
+              field="proposals_per_sample"),
     ParamSpec("seed", "latent-noise seed: the same input gives the same completions; -1 = a fresh seed per "
               "call", -1, INT32_MAX, field="seed"),
     ParamSpec("voxel_size", "grid voxel size in metres; 0 = the model's training voxel size", 0.0, 0.1,
@@ -151,6 +158,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               field="up_vector", constraints="3 finite numbers, not all zero"),
     ParamSpec("estimate_up", "estimate up from the support plane around the object (RANSAC); up_vector is then "
               "the prior that orients it", field="estimate_up"),
+    ParamSpec("up_check_deg", "with estimate_up false: warn when the support plane around the object is tilted "
+              "more than this from up_vector, degrees; 0 = no check", 0.0, 90.0, field="up_check_deg"),
     ParamSpec("support_plane_distance", "support-plane RANSAC inlier distance, metres", 0.0005, 0.05,
               field="support_plane_distance"),
     ParamSpec("support_plane_max_tilt_deg", "largest angle between the fitted plane normal and up_vector",

@@ -47,7 +47,7 @@ class Oracle:
                 self.table[s["known_occupied"].tobytes() + s["known_free"].tobytes()] = s["occupancy"]
 
     def complete(self, observation, num_samples=20, seed=0):
-        x = np.asarray(observation) > 0.5
+        x = observation.network_input() > 0.5  # the evaluation hands over its views
         truth = self.table[x[0].tobytes() + x[1].tobytes()]
         return argparse.Namespace(occupancy=np.stack([truth] * (num_samples - 1) + [np.zeros_like(truth)]))
 
@@ -154,3 +154,32 @@ def test_dense_mug_views_pick_a_full_turn_of_the_first_handled_mugs():
     assert _dense_mug_views(views, 0, 2) == []
     with pytest.raises(EvaluationCliError, match="dense-step"):
         _dense_mug_views(views, 1, 0)
+
+
+def test_evaluate_scores_each_model_with_both_samplers(tiny_data, tiny_checkpoint, tmp_path, capsys):
+    """--samplers posterior,checked adds <model>_checked (the checked sampler on the evaluation's own views);
+    a model without a latent keeps its one method and says why."""
+    from pssnet_core.evaluation.cli import load_completers
+    from pssnet_core.models.checkpoint import save_checkpoint
+    from pssnet_core.models.registry import build_model, default_config
+    from pssnet_core.sampling import CheckedSampler
+
+    out = tmp_path / "results"
+    assert main(["evaluate", "--models", "vae", "--checkpoints", str(tiny_checkpoint), "--data", str(tiny_data),
+                 "--samples", "2", "--out", str(out), "--workers", "1", "--max-observations", "2", "--no-progress",
+                 "--cache-dir", str(tmp_path / "cache"), "--threads", "1", "--samplers", "posterior,checked",
+                 "--check-delta", "0.02"]) == 0
+    rows = list(csv.DictReader(open(out / "per_observation.csv")))
+    assert {r["method"] for r in rows} == {"vae", "vae_checked"}
+    recgan = save_checkpoint(tmp_path / "r.pt", build_model(default_config("recgan", grid_size=16,
+                                                                          channels=[4, 8, 8, 8], bottleneck_dim=8,
+                                                                          disc_channels=[4, 8])))
+    capsys.readouterr()
+    completers = load_completers(["vae", "recgan"], f"{tiny_checkpoint / 'vae.pt'},{recgan}", "cpu", 1,
+                                 ("checked",), 0.02)
+    assert set(completers) == {"vae_checked", "recgan"} and isinstance(completers["vae_checked"], CheckedSampler)
+    assert completers["vae_checked"].sampler_config.delta == 0.02
+    assert "recgan" in capsys.readouterr().err
+    assert main(["evaluate", "--models", "vae", "--checkpoints", str(tiny_checkpoint), "--data", str(tiny_data),
+                 "--out", str(out), "--samplers", "best"]) == 2
+    assert "samplers must be" in capsys.readouterr().err

@@ -76,6 +76,7 @@ def test_round_trip_returns_completions_in_the_request_frame(ros, service, scene
     assert response.header.frame_id == "camera_depth_optical_frame"
     assert (response.header.stamp.sec, response.header.stamp.nanosec) == (1234, 5678)
     assert response.voxel_size > 0 and len(response.completions) == 5
+    assert len(response.sample_weights) == 5 and sum(response.sample_weights) == pytest.approx(1.0)
     assert len(response.grasps.poses) == 0 and response.grasps.header.frame_id == "camera_depth_optical_frame"
     known, _ = pointcloud2_to_numpy(response.known_occupied)
     assert len(known) > 50 and response.known_occupied.header.stamp.sec == 1234

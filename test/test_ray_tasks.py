@@ -186,10 +186,11 @@ class SeededCompleter:
 
     grid_size = 16
 
-    def complete(self, observation: np.ndarray, num_samples: int = 20, seed: int = 0) -> argparse.Namespace:
+    def complete(self, observation: Any, num_samples: int = 20, seed: int = 0) -> argparse.Namespace:
+        x = observation.network_input()  # the evaluation hands over its views
         rng = np.random.default_rng(seed)
-        noise = rng.random((num_samples, *observation.shape[1:])) < 0.02
-        return argparse.Namespace(occupancy=noise | (np.asarray(observation[0]) > 0.5))
+        noise = rng.random((num_samples, *x.shape[1:])) < 0.02
+        return argparse.Namespace(occupancy=noise | (x[0] > 0.5))
 
 
 def test_evaluation_on_ray_equals_in_process(ray_runner, tiny_set):

@@ -116,7 +116,7 @@ def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
 
 def test_every_pipeline_parameter_names_a_config_field_with_its_default():
     fields = [spec.field for spec in PARAMETERS if spec.field]
-    assert len(fields) == len(set(fields)) == 27
+    assert len(fields) == len(set(fields)) == 31
     for spec in PARAMETERS:
         if spec.field:
             assert spec.default == config_default(spec.field), spec.name
@@ -129,7 +129,8 @@ def test_every_pipeline_parameter_names_a_config_field_with_its_default():
                "grasp_finger_length": 0.06, "grasp_finger_width": 0.015, "grasp_finger_thickness": 0.012,
                "grasp_palm_depth": 0.03, "grasp_min_object_width": 0.004, "grasp_clearance": 0.004,
                "grasp_max_candidates": 300, "grasp_top_yaws": 4, "grasp_side_yaws": 6, "grasp_top_k": 3,
-               "grasp_min_score": 0.25}
+               "grasp_min_score": 0.25, "sampler": "posterior", "check_delta": 0.02, "proposals_per_sample": 5,
+               "up_check_deg": 10.0}
     assert set(changed) == {s.name for s in PARAMETERS if s.field}
     config = pipeline_config({**values, **changed})
     for name, value in changed.items():

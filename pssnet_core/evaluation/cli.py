@@ -82,6 +82,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
     _add_plausible_options(e)
     e.add_argument("--samples", type=int, default=100, help="completions per observation (paper: 100)")
+    e.add_argument("--samplers", type=_names, default=("posterior",),
+                   help="posterior sampling only, or also each model behind the plausibility-checked sampler (method "
+                        "<model>_checked): posterior, checked or posterior,checked")
+    e.add_argument("--check-delta", type=float, default=None,
+                   help="the checked sampler's depth tolerance in metres (default 0.01)")
     e.add_argument("--delta", type=float, default=PAPER_DELTA, help="the paper's delta (m)")
     e.add_argument("--scaled-delta", type=float, default=SCALED_DELTA,
                    help="the delta scaled to real-size objects (m); <= 0 to skip")
@@ -129,6 +134,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
     a.add_argument("--data", required=True, help="directory holding the test sets (mugs, ycb_narrow)")
     a.add_argument("--samples", type=int, default=20, help="completions per view")
+    a.add_argument("--samplers", type=_names, default=("posterior",),
+                   help="posterior sampling only, or also each model behind the plausibility-checked sampler (method "
+                        "<model>_checked): posterior, checked or posterior,checked")
+    a.add_argument("--check-delta", type=float, default=None,
+                   help="the checked sampler's depth tolerance in metres (default 0.01)")
     a.add_argument("--box-temperatures", type=_floats, default=(1.0,),
                    help="box temperatures for models with a box part, e.g. 1,1.5,2,3 (others run at 1 only)")
     a.add_argument("--max-views", type=int, default=None,
@@ -319,12 +329,44 @@ def resolve_checkpoints(models: list[str], spec: str) -> dict[str, Path]:
     return dict(zip(models, items, strict=True))
 
 
-def load_completers(models: list[str], spec: str, device: str, threads: int | None) -> dict[str, Any]:
-    """Completers by method name (``pssnet_core.inference.Completer``)."""
-    from pssnet_core.inference import Completer
+def load_completers(models: list[str], spec: str, device: str, threads: int | None,
+                    samplers: tuple[str, ...] = ("posterior",), check_delta: float | None = None,
+                    box_temperatures: tuple[float, ...] | None = None) -> dict[str, Any]:
+    """Completers by method name (``pssnet_core.inference.Completer``).
 
-    return {m: Completer.from_checkpoint(p, device=device, threads=threads)
-            for m, p in resolve_checkpoints(models, spec).items()}
+    With ``samplers`` holding "checked", each latent-variable model also appears as ``<model>_checked``: the same
+    checkpoint behind :class:`pssnet_core.sampling.CheckedSampler` (``check_delta`` metres, default its own). A
+    model without a latent (3D-RecGAN++) has no checked variant and is listed once, with a note on stderr.
+    """
+    from pssnet_core.inference import Completer
+    from pssnet_core.models.base import check_box_temperature
+    from pssnet_core.sampling import SAMPLERS, CheckedSampler, CheckedSamplerConfig
+
+    if not samplers or any(s not in SAMPLERS for s in samplers):
+        raise EvaluationCliError(f"samplers must be a non-empty list of {', '.join(SAMPLERS)}, got {samplers}")
+    temperatures = box_temperatures or (1.0,) * len(models)
+    if len(temperatures) != len(models):
+        raise EvaluationCliError(f"{len(temperatures)} box temperatures for {len(models)} models")
+    try:
+        config = CheckedSamplerConfig() if check_delta is None else CheckedSamplerConfig(delta=check_delta)
+    except ValueError as error:
+        raise EvaluationCliError(f"--check-delta: {error}") from error
+    out: dict[str, Any] = {}
+    for (model, path), temperature in zip(resolve_checkpoints(models, spec).items(), temperatures, strict=True):
+        completer = Completer.from_checkpoint(path, device=device, threads=threads)
+        try:
+            completer.box_temperature = check_box_temperature(temperature, getattr(completer.model, "box_dim", 0) > 0)
+        except ValueError as error:
+            raise EvaluationCliError(f"{model}: {error}") from error
+        if "posterior" in samplers:
+            out[model] = completer
+        if "checked" in samplers:
+            try:
+                out[f"{model}_checked"] = CheckedSampler(completer, config)
+            except ValueError as error:
+                print(f"note: {model}: {error}", file=sys.stderr)
+                out.setdefault(model, completer)
+    return out
 
 
 def run_evaluation(args: argparse.Namespace, completers: dict[str, Any]) -> dict[str, Path]:
@@ -397,19 +439,8 @@ def run_evaluation(args: argparse.Namespace, completers: dict[str, Any]) -> dict
 
 
 def _evaluate_command(args: argparse.Namespace) -> int:
-    from pssnet_core.models.base import check_box_temperature
-
-    models = _models(args.models)
-    temperatures = args.model_box_temperatures or (1.0,) * len(models)
-    if len(temperatures) != len(models):
-        raise EvaluationCliError(f"{len(temperatures)} box temperatures for {len(models)} models")
-    completers = load_completers(models, args.checkpoints, args.device, args.threads)
-    for model, temperature in zip(models, temperatures, strict=True):
-        try:
-            completers[model].box_temperature = check_box_temperature(
-                temperature, getattr(completers[model].model, "box_dim", 0) > 0)
-        except ValueError as error:
-            raise EvaluationCliError(f"{model}: {error}") from error
+    completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
+                                 args.check_delta, args.model_box_temperatures)
     files = run_evaluation(args, completers)
     print((Path(args.out) / "results.md").read_text())
     print("wrote " + ", ".join(str(p) for p in files.values()))
@@ -506,6 +537,10 @@ def _handles_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
 def _models(text: str) -> list[str]:
     models = [m.strip() for m in text.split(",") if m.strip()]
     if not models:
@@ -535,7 +570,8 @@ def _ambiguity_command(args: argparse.Namespace) -> int:
     from pssnet_core.evaluation.ambiguity import run_ambiguity
 
     run = ambiguity_run(args)  # parameters checked before the models load
-    files = run_ambiguity(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads))
+    files = run_ambiguity(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads,
+                                                    args.samplers, args.check_delta))
     print(files["markdown"].read_text())
     print("wrote " + ", ".join(str(p) for p in files.values()))
     return 0

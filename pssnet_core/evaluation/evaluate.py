@@ -38,7 +38,8 @@ class SampleSource(Protocol):
     grid_size: int
 
     def complete(self, observation: Any, num_samples: int = 20, seed: int = 0) -> Any:  # -> has .occupancy
-        ...
+        """``observation`` is the :class:`~pssnet_core.evaluation.plausible.EvalView` (``network_input()``, its grids
+        and grid pose)."""
 
 
 @dataclass
@@ -98,7 +99,7 @@ def _score_observation(i: int, set_name: str, views: Sequence[EvalView], meshes:
     meta = {k: v for k, v in view.meta.items() if isinstance(v, bool | int | float | str | np.bool_)}
     for name, completer in completers.items():
         t2 = time.perf_counter()
-        samples = np.asarray(completer.complete(view.network_input(), num_samples=num_samples,
+        samples = np.asarray(completer.complete(view, num_samples=num_samples,
                                                 seed=seed + i).occupancy, dtype=bool)
         t3 = time.perf_counter()
         out.seconds["models"] += t3 - t2

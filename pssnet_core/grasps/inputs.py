@@ -36,6 +36,18 @@ def check_points(points: np.ndarray | None) -> np.ndarray | None:
     return points
 
 
+def check_weights(weights: np.ndarray | None, count: int) -> np.ndarray | None:
+    """Completion weights normalised to sum 1 (None stays None: equal weights)."""
+    if weights is None:
+        return None
+    weights = np.asarray(weights, dtype=np.float64)
+    if weights.shape != (count,):
+        raise GraspError(f"weights must have one entry per completion ({count}), got shape {weights.shape}")
+    if not np.all(np.isfinite(weights)) or weights.min() < 0 or weights.sum() <= 0:
+        raise GraspError("weights must be finite, non-negative and not all zero")
+    return weights / weights.sum()
+
+
 def estimate_support_height(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
                             known_occupied: np.ndarray | None = None) -> float:
     """Height of the horizontal support plane in grid coordinates (voxels); see the package docstring.

@@ -9,15 +9,20 @@ import numpy as np
 from pssnet_core.geometry import GridPose
 from pssnet_core.grasps.candidates import candidates_from_packed
 from pssnet_core.grasps.config import GraspConfig, GraspError
-from pssnet_core.grasps.inputs import check_occupancy, check_points, support_height_of
+from pssnet_core.grasps.inputs import check_occupancy, check_points, check_weights, support_height_of
 from pssnet_core.grasps.lattice import PackedGrids
 from pssnet_core.grasps.results import KIND_NAMES, GraspCandidates, GraspSet, SingleCompletionChoice
 from pssnet_core.grasps.scoring import checks_from_packed, holds_and_secondary, score_grasps
 
 
 def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
-                  support_z: float) -> GraspSet:
-    scores = holds.mean(axis=1) if holds.shape[1] else np.zeros(len(candidates))
+                  support_z: float, weights: np.ndarray | None = None) -> GraspSet:
+    if not holds.shape[1]:
+        scores = np.zeros(len(candidates))
+    elif weights is None:
+        scores = holds.mean(axis=1)
+    else:  # the weighted fraction: the share of the completions' weight a grasp holds for
+        scores = holds @ weights
     order = np.lexsort((-secondary, -scores))  # score first, then the secondary term; stable
     c = candidates.subset(order)
     poses = np.tile(np.eye(4), (len(c), 1, 1))
@@ -32,7 +37,8 @@ def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.
 def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
                 config: GraspConfig | None = None, known_occupied: np.ndarray | None = None,
                 support_z: float | None = None,
-                allowed: Callable[[GraspCandidates], np.ndarray] | None = None) -> GraspSet:
+                allowed: Callable[[GraspCandidates], np.ndarray] | None = None,
+                weights: np.ndarray | None = None) -> GraspSet:
     """Completions in, grasps ranked by the fraction of completions they hold for out.
 
     Args:
@@ -43,6 +49,8 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
         known_occupied: (N, N, N) observed voxels; places the support plane when ``points`` is None.
         support_z: support-plane height in grid voxels; None = :func:`estimate_support_height`.
         allowed: restricts the candidates (see :func:`generate_candidates`).
+        weights: (S,) non-negative weight of each completion (e.g. the checked sampler's); a grasp's score is
+            then the weighted fraction of the completions it holds for. None: every completion counts alike.
 
     Returns:
         The scored candidates, best first (possibly empty when no completion has any voxel the gripper fits).
@@ -53,6 +61,7 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
     config = config or GraspConfig()
     occupancy = check_occupancy(occupancy, pose)
     points = check_points(points)
+    weights = check_weights(weights, occupancy.shape[0])
     if support_z is None:
         support_z = support_height_of(occupancy, pose, points, known_occupied)
     # Packed once: candidates and scores read the same bit words.
@@ -60,7 +69,7 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
     candidates = candidates_from_packed(bits, occupancy.any(axis=0), pose, points, config, support_z, allowed)
     checks = checks_from_packed(candidates, bits, pose, support_z, config)
     holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
-    return _to_grasp_set(candidates, holds, secondary, pose, support_z)
+    return _to_grasp_set(candidates, holds, secondary, pose, support_z, weights)
 
 
 def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, points: np.ndarray | None = None,

@@ -1,0 +1,201 @@
+"""The plausibility-checked diverse sampler: the grid check, the spread selection and its weights, the sampler on
+tiny and shipped models, and where its weights and notes go (grasp scores, pipeline)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_models_helpers import tiny_model
+
+from pssnet_core.geometry import GridPose
+from pssnet_core.grasps import plan_grasps
+from pssnet_core.grasps.config import GraspError
+from pssnet_core.inference import DEFAULT_CHECKPOINT, Completer, CompletionInputError
+from pssnet_core.sampling import (
+    SOURCES,
+    CheckedResult,
+    CheckedSampler,
+    CheckedSamplerConfig,
+    GridCheck,
+    PackedGrids,
+    farthest_point_selection,
+)
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+N = 16
+VOXEL = 0.01
+
+
+def camera_facing_grid(n: int = N) -> GridPose:
+    """A grid whose x axis is the camera's optical axis: rays run along +x through the grid, camera 0.5 m away."""
+    rotation = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # grid x, y, z in the camera frame
+    origin = -(rotation @ np.array([0.0, n / 2, n / 2])) * VOXEL + np.array([0.0, 0.0, 0.5])
+    return GridPose(rotation=rotation, origin=origin, voxel_size=VOXEL, size=n)
+
+
+def slab_view(front: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """A wall seen face-on at grid x = ``front`` over y, z in [4, 12): observed voxels, free space before them."""
+    known_occupied = np.zeros((N, N, N), bool)
+    known_occupied[front, 4:12, 4:12] = True
+    known_free = np.zeros((N, N, N), bool)
+    known_free[:front, 4:12, 4:12] = True
+    return known_occupied, known_free
+
+
+def test_grid_check_counts_what_alg1_would_reject():
+    known_occupied, known_free = slab_view()
+    check = GridCheck.prepare(known_occupied, known_free, camera_facing_grid(), delta=0.02)
+    solid = np.zeros((N, N, N), bool)
+    solid[6:10, 4:12, 4:12] = True  # the seen face and a body behind it: explains everything
+    hollow = solid.copy()
+    hollow[6:8] = False  # surface 2 voxels (= delta) behind the observed one: still within delta
+    too_deep = solid.copy()
+    too_deep[6:9] = False  # 3 voxels behind: beyond delta, every observed voxel unexplained
+    half = solid.copy()
+    half[6:10, 4:8] = False  # half the face missing
+    shallow = solid.copy()
+    shallow[5, 4:12, 4:12] = True  # one voxel in front of the surface: within delta of what was seen
+    intruding = solid.copy()
+    intruding[1:3, 6:8, 6:8] = True  # 8 voxels far in front: the camera saw through them
+    grids = np.stack([solid, hollow, too_deep, half, shallow, intruding]).reshape(6, -1)
+    missed, free = check.violations(grids, PackedGrids(grids))
+    np.testing.assert_allclose(missed, [0.0, 0.0, 1.0, 0.5, 0.0, 0.0])
+    assert free.tolist() == [0, 0, 0, 0, 0, 8]
+
+
+def test_packed_jaccard_and_farthest_point_selection_with_cell_weights():
+    rng = np.random.default_rng(0)
+    centres = [rng.random(4096) < 0.3 for _ in range(3)]
+    grids, labels = [], []
+    for label, size in enumerate((10, 5, 1)):  # three clusters of near-copies
+        for _ in range(size):
+            g = centres[label].copy()
+            g[rng.integers(0, 4096, 20)] ^= True
+            grids.append(g)
+            labels.append(label)
+    grids_array = np.stack(grids)
+    packed = PackedGrids(grids_array)
+    a, b = grids_array[0], grids_array[12]
+    expected = 1.0 - (a & b).sum() / (a | b).sum()
+    assert packed.jaccard_to(0)[12] == pytest.approx(expected) and packed.jaccard_to(0)[0] == 0.0
+    picked, cell = farthest_point_selection(packed, 3)
+    assert sorted(np.asarray(labels)[picked].tolist()) == [0, 1, 2]  # one from each cluster
+    counts = np.bincount(cell, minlength=3)
+    assert sorted(counts.tolist()) == [1, 5, 10]
+    for position, index in enumerate(picked):  # each picked grid's cell is its own cluster
+        assert set(np.asarray(labels)[cell == position]) == {labels[index]}
+    copies = PackedGrids(np.repeat(grids_array[:1], 4, axis=0))
+    assert len(farthest_point_selection(copies, 3)[0]) == 1  # identical grids: nothing more to spread over
+
+
+def test_config_checks_and_proposal_counts():
+    config = CheckedSamplerConfig()
+    counts = config.proposal_counts(20, has_box=True)
+    assert sum(counts.values()) == 200 and tuple(counts) == SOURCES and min(counts.values()) > 0
+    assert config.proposal_counts(20, has_box=False) == {"posterior": 200, "widened": 0, "prior_box": 0}
+    assert sum(CheckedSamplerConfig(max_proposals=50).proposal_counts(20, True).values()) == 50
+    for bad in ({"proposals_per_sample": 0}, {"source_shares": (0.0, 0.0, 0.0)}, {"delta": -0.01},
+                {"max_missed_fraction": 1.0}, {"widened_temperature": float("nan")}, {"max_free_voxels": -1}):
+        with pytest.raises(ValueError):
+            CheckedSamplerConfig(**bad)
+
+
+class SlabObservation:
+    """An observation with its grid pose, as the pipeline and the evaluation hand it over."""
+
+    def __init__(self) -> None:
+        self.known_occupied, self.known_free = slab_view()
+        self.pose = camera_facing_grid()
+
+    def network_input(self) -> np.ndarray:
+        return np.stack([self.known_occupied, self.known_free]).astype(np.float32)
+
+
+def tiny_completer(name: str = "pssnet") -> Completer:
+    model = tiny_model(name, N)
+    if hasattr(model, "encoder"):
+        with torch.no_grad():  # a wide posterior: the proposals differ
+            model.encoder.dense.bias[model.latent_dim:] = 1.0
+    return Completer(model, model.config)
+
+
+def test_checked_sampler_on_a_tiny_model_returns_weighted_seeded_samples():
+    sampler = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=8, max_missed_fraction=0.9,
+                                                                    max_free_voxels=10_000))
+    observation = SlabObservation()
+    result = sampler.complete(observation, num_samples=6, seed=3)
+    assert isinstance(result, CheckedResult)
+    assert result.occupancy.shape == (6, N, N, N) and result.probabilities.dtype == np.float32
+    assert result.weights.shape == (6,) and result.weights.sum() == pytest.approx(1.0) and result.weights.min() > 0
+    assert result.proposals == 48 and result.accepted == sum(result.accepted_by_source.values())
+    again = sampler.complete(observation, num_samples=6, seed=3)
+    np.testing.assert_array_equal(again.probabilities, result.probabilities)
+    np.testing.assert_array_equal(again.weights, result.weights)
+    assert sampler.grid_size == N and sampler.model_name == "pssnet" and sampler.box_temperature == 1.0
+
+
+def test_checked_sampler_says_when_no_proposal_agrees_with_the_view():
+    observation = SlabObservation()
+    observation.known_free = ~observation.known_occupied  # everything else seen through: any body violates
+    sampler = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
+                                                                    max_missed_fraction=0.0))
+    result = sampler.complete(observation, num_samples=3, seed=0)
+    assert result.accepted == 0 and "no proposal of 12 agrees with the view" in result.note
+    assert result.occupancy.shape[0] == 3 and result.weights.sum() == pytest.approx(1.0)
+
+
+def test_checked_sampler_refuses_models_without_a_latent_and_bare_inputs():
+    with pytest.raises(ValueError, match="latent-variable model"):
+        CheckedSampler(tiny_completer("recgan"))
+    sampler = CheckedSampler(tiny_completer("vae"))
+    with pytest.raises(CompletionInputError, match="grid pose"):
+        sampler.complete(SlabObservation().network_input(), num_samples=2)
+    with pytest.raises(CompletionInputError, match="num_samples"):
+        sampler.complete(SlabObservation(), num_samples=0)
+    counts = sampler.complete(SlabObservation(), num_samples=2, seed=0).accepted_by_source
+    assert counts["widened"] == 0 and counts["prior_box"] == 0  # a VAE has no box part: posterior only
+
+
+def test_grasp_scores_are_the_weighted_fraction_of_completions():
+    pose = camera_facing_grid(32)
+    box = np.zeros((32, 32, 32), bool)
+    box[12:20, 13:19, 4:16] = True  # a 6 cm block standing on the grid's floor
+    empty = np.zeros_like(box)
+    empty[12:13, 13:19, 4:16] = True  # only its front face: a grasp around the whole block holds nothing here
+    occupancy = np.stack([box, empty, box])
+    plain = plan_grasps(occupancy, pose)
+    weighted = plan_grasps(occupancy, pose, weights=np.array([0.1, 0.8, 0.1]))
+    assert len(plain) and len(weighted) == len(plain)
+    by_pose = {tuple(np.round(p[:3, 3], 6)) + (round(w, 6),): s for p, w, s in zip(plain.poses, plain.widths,
+                                                                                plain.scores, strict=True)}
+    for grasp_pose, width, score, holds in zip(weighted.poses, weighted.widths, weighted.scores, weighted.holds,
+                                               strict=True):
+        assert score == pytest.approx(holds @ np.array([0.1, 0.8, 0.1]))
+        assert by_pose[tuple(np.round(grasp_pose[:3, 3], 6)) + (round(width, 6),)] == pytest.approx(holds.mean())
+    for bad in (np.array([1.0, 1.0]), np.array([1.0, -1.0, 1.0]), np.zeros(3), np.array([np.nan, 1.0, 1.0])):
+        with pytest.raises(GraspError, match="weights"):
+            plan_grasps(occupancy, pose, weights=bad)
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped default model")
+def test_pipeline_with_the_checked_sampler_and_the_up_vector_check():
+    """The shipped model on a rendered mug, camera pitched 30 degrees: weights and a note through the pipeline,
+    and a wrong (level-camera) up vector reported with its tilt."""
+    from pssnet_core.data.scenes import render_view
+    from pssnet_core.pipeline import CompletionPipeline, PipelineConfig
+    from pssnet_core.shapes.procedural import make_shape
+
+    view = render_view(make_shape("mug", 2_000_001), yaw_deg=0.0, tilt_deg=30.0)
+    pipeline = CompletionPipeline.from_checkpoint(None, PipelineConfig(num_samples=5, up_vector=tuple(view.up),
+                                                                       sampler="checked"))
+    result = pipeline.run(view.depth, view.mask, view.intrinsics, compute_grasps=False)
+    assert result.num_samples == 5 and result.weights.sum() == pytest.approx(1.0)
+    assert result.up_disagreement_deg < 1.0 and "tilted" not in result.note
+    pipeline.config = pipeline.with_config(up_vector=(0.0, -1.0, 0.0), sampler="posterior")
+    level = pipeline.run(view.depth, view.mask, view.intrinsics, compute_grasps=False)
+    assert level.up_disagreement_deg == pytest.approx(30.0, abs=1.0)
+    assert "tilted 30 deg from up_vector" in level.note
+    np.testing.assert_allclose(level.weights, 0.2)
+    with pytest.raises(ValueError, match="sampler"):
+        PipelineConfig(sampler="best")
