@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from pssnet_core.data.datasets import SCALES
 from pssnet_core.geometry import ObservationError
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 from pssnet_core.shapes import ShapeError
@@ -84,9 +85,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--views", type=int, default=None, help="views per object (default 72 mugs, 24 ycb train, "
                    "72 ycb test)")
     b.add_argument("--noise", action="store_true", help="add Kinect-like depth noise and edge dropout")
-    b.add_argument("--scale", choices=("default", "large"), default="default",
+    b.add_argument("--scale", choices=SCALES, default="default",
                    help="large (train only): 20,000 mugs + 20,000 ycb objects x 4 random-yaw views, noise on half "
-                        "of the views (160,000 views); val and test are the same at every scale")
+                        "of the views (160,000 views); broad: the same with half the objects from the families "
+                        "that break the generator's priors and the mugs seen through random slits too; val and "
+                        "test are the same at every scale")
     b.add_argument("--front-margin", type=float, default=None, help="grid front margin in voxels "
                    "(default GridConfig's; the node must use the same)")
     b.add_argument("--bottom-margin", type=float, default=None, help="grid bottom margin in voxels (likewise)")

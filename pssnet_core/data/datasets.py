@@ -68,7 +68,8 @@ DEFAULT_OBJECTS: dict[tuple[str, str], int] = {
     ("mugs", "test"): 12, ("ycb_narrow", "test"): 12, ("ycb_wide", "test"): 12,
     ("mugs", "val"): 6, ("ycb", "val"): 16,
 }
-SCALES = ("default", "large")
+SCALES = ("default", "large", "broad")
+BROAD_MUG_SLIT_M = (0.03, 0.3)  # broad mugs: a random slit, wider than the mug in about two views of three
 LARGE_TRAIN_OBJECTS = 20_000  # per family group (mugs; ycb), see the module docstring
 LARGE_TRAIN_VIEWS = 4
 LARGE_NOISE_FRACTION = 0.5
@@ -167,7 +168,7 @@ class DatasetSpec:
 
     @property
     def is_mugs(self) -> bool:
-        return self.families == ("mug",)
+        return set(self.families) <= {"mug", "mug_broad"}
 
     @property
     def combinations(self) -> int:
@@ -239,9 +240,11 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         noise: sensor imperfections (None: exact depth).
         front_margin: grid placement margin override (voxels; default GridConfig's).
         bottom_margin: grid placement margin override (voxels; default GridConfig's).
-        scale: "default" or "large" (train: 20,000 objects per family group x 4 random-yaw views, noise on
-            half of the views unless ``noise`` is given; val and test are the same at every scale, so that
-            models trained at either scale are validated and tested alike).
+        scale: "default", "large" (train: 20,000 objects per family group x 4 random-yaw views, noise on
+            half of the views unless ``noise`` is given) or "broad" (as large, with half the objects from
+            :data:`~pssnet_core.shapes.procedural.BROAD_FAMILIES`, and the mugs seen through random slits too,
+            so that a hidden handle can lie at any azimuth); val and test are the same at every scale, so that
+            models trained at any scale are validated and tested alike.
     """
     if scale not in SCALES:
         raise DatasetSpecError(f"scale must be one of {SCALES}, got {scale!r}")
@@ -270,11 +273,15 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
                     ycb_translation_m=0.0, num_objects=DEFAULT_OBJECTS[(name, split)], objects_per_shard=4,
                     **common))
     overrides: dict[str, Any] = {}
-    if scale == "large" and split == "train":
+    if scale in ("large", "broad") and split == "train":
         overrides.update(num_objects=LARGE_TRAIN_OBJECTS, views=LARGE_TRAIN_VIEWS, random_yaw=True,
                          objects_per_shard=LARGE_OBJECTS_PER_SHARD)
         if noise is None:
             overrides.update(noise=SensorNoise(), noise_fraction=LARGE_NOISE_FRACTION)
+    if scale == "broad" and split == "train":
+        specs = [replace(s, families=("mug", "mug_broad"), slit_mode="random", slit_range_m=BROAD_MUG_SLIT_M)
+                 if s.is_mugs else replace(s, families=YCB_FAMILIES + ("box_broad", "can_broad", "bottle_broad"))
+                 for s in specs]
     if num_objects is not None:
         overrides["num_objects"] = int(num_objects)
     if views is not None:

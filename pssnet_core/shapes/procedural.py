@@ -33,11 +33,20 @@ import manifold3d as mf
 import numpy as np
 import trimesh
 
-FAMILIES: tuple[str, ...] = ("mug", "box", "can", "bottle", "bowl", "irregular")
-"""Every procedural family."""
+FAMILIES: tuple[str, ...] = ("mug", "box", "can", "bottle", "bowl", "irregular",
+                             "mug_broad", "box_broad", "can_broad", "bottle_broad")
+"""Every procedural family. The ``*_broad`` families break the base families' priors (training only, see
+:data:`BROAD_FAMILIES`)."""
 
 YCB_FAMILIES: tuple[str, ...] = ("box", "can", "bottle", "bowl", "irregular")
 """The YCB-like families (used by the slit-occlusion experiment)."""
+
+BROAD_FAMILIES: tuple[str, ...] = ("mug_broad", "box_broad", "can_broad", "bottle_broad")
+"""Families whose proportions are drawn independently per axis, as far as the size limit allows: mugs with wider
+ranges of body size, handle reach, span, thickness and tilt and a slightly elliptic body; boxes whose width,
+depth and height are independent (a box's hidden depth says nothing about its visible face); cans and bottles
+stretched independently along each axis. A model trained on the base families alone learns their
+correlations (a cereal box is ~7 cm deep) and completes every hidden side to them."""
 
 MAX_DIAGONAL: float = 0.18
 """Largest allowed diagonal of an object's axis-aligned bounds (m): it then fits a 0.18 m cube in any pose."""
@@ -325,7 +334,10 @@ def _mug_extent(p: _MugParams) -> np.ndarray:
     return np.array([x_max - x_min, 2.0 * y_half, p.height])
 
 
-def _sample_mug(rng: np.random.Generator) -> _MugParams:
+def _sample_mug(rng: np.random.Generator, broad: bool = False) -> _MugParams:
+    """Mug parameters; ``broad`` widens every range (the ``mug_broad`` family)."""
+    if broad:
+        return _sample_broad_mug(rng)
     square_body = bool(rng.random() < 0.05)
     has_handle = bool(rng.random() >= 0.10)
     profile = "straight" if square_body else str(rng.choice(MUG_PROFILES))
@@ -349,12 +361,31 @@ def _sample_mug(rng: np.random.Generator) -> _MugParams:
         thickness=thickness, corner_frac=_uniform(rng, 1.5, 2.5), width=thickness * _uniform(rng, 1.0, 1.8))
 
 
-def _build_mug(rng: np.random.Generator) -> tuple[mf.Manifold, mf.Manifold | None, dict]:
-    p = _sample_mug(rng)
+def _sample_broad_mug(rng: np.random.Generator) -> _MugParams:
+    profile = str(rng.choice(MUG_PROFILES))
+    taper = {"straight": 1.0, "tapered": _uniform(rng, 0.6, 1.3), "barrel": _uniform(rng, 0.7, 0.95)}[profile]
+    if profile == "tapered" and taper > 1.0:
+        taper = 1.0 / (2.0 - taper)  # wider at the bottom: the larger end is the reference radius
+    wall = _uniform(rng, 0.0025, 0.007)
+    thickness = _uniform(rng, 0.003, 0.008)
+    return _MugParams(
+        square_body=False, profile=profile, height=_uniform(rng, 0.06, 0.15), radius=_uniform(rng, 0.028, 0.06),
+        taper=taper, flare=_uniform(rng, -0.05, 0.1) if profile == "straight" else 0.0,
+        chamfer=_uniform(rng, 0.0005, 0.004), corner=0.01, wall=wall, bottom=_uniform(rng, max(wall, 0.004), 0.012),
+        has_handle=bool(rng.random() >= 0.05), style=str(rng.choice(HANDLE_STYLES)),
+        reach=_uniform(rng, 0.01, 0.05), span_frac=_uniform(rng, 0.3, 0.85), position=_uniform(rng, 0.0, 1.0),
+        tilt_deg=_uniform(rng, -35.0, 35.0), thickness=thickness, corner_frac=_uniform(rng, 1.5, 2.5),
+        width=thickness * _uniform(rng, 0.8, 2.5))
+
+
+def _build_mug(rng: np.random.Generator, broad: bool = False) -> tuple[mf.Manifold, mf.Manifold | None, dict]:
+    p = _sample_mug(rng, broad)
+    # mug_broad: a slightly elliptic body (x and y scaled apart; z is the profile's own height).
+    stretch = np.array([_uniform(rng, 0.85, 1.2), _uniform(rng, 0.85, 1.2), 1.0]) if broad else np.ones(3)
     # Fit the size limit by shrinking height, radius and reach (walls and handle tube keep their thickness).
     scale = 1.0
     for _ in range(30):
-        diagonal = float(np.linalg.norm(_mug_extent(p)))
+        diagonal = float(np.linalg.norm(_mug_extent(p) * stretch))
         if diagonal <= _FIT_DIAGONAL:
             break
         factor = _FIT_DIAGONAL / diagonal * 0.999
@@ -383,6 +414,14 @@ def _build_mug(rng: np.random.Generator) -> tuple[mf.Manifold, mf.Manifold | Non
         handle = tube - body
     else:
         solid = body - cavity
+    if broad:
+        # The extent model above does not know the stretch's effect on a tilted handle: fit the solid itself.
+        (x0, y0, z0), (x1, y1, z1) = np.reshape(solid.bounding_box(), (2, 3))
+        fit = _fit_factor(float(np.linalg.norm(np.array([x1 - x0, y1 - y0, z1 - z0]) * stretch)))
+        stretch = stretch * fit
+        scale *= fit
+        solid = solid.scale(tuple(stretch))
+        handle = None if handle is None else handle.scale(tuple(stretch))
     radii = radius_at(np.linspace(0.0, p.height, 33))
     attributes: dict[str, float | str | bool] = {
         "profile": p.profile, "square_body": p.square_body, "has_handle": p.has_handle,
@@ -390,6 +429,8 @@ def _build_mug(rng: np.random.Generator) -> tuple[mf.Manifold, mf.Manifold | Non
         "bottom_thickness": p.bottom, "scale_to_fit": scale,
         "handle_style": p.style if p.has_handle else "none",
     }
+    if broad:
+        attributes.update(stretch_x=float(stretch[0]), stretch_y=float(stretch[1]))
     if p.has_handle:
         _, handle_zc = _handle_centre_line(p)
         attributes.update(
@@ -557,6 +598,42 @@ def _build_irregular(rng: np.random.Generator) -> tuple[mf.Manifold, None, dict]
     return solid, None, {"kind": kind, "parts": parts, "scale_to_fit": scale}
 
 
+# ------------------------------------------------------------------------------------------ broad families
+
+BROAD_BOX_RANGES_M: tuple[tuple[float, float], ...] = ((0.03, 0.2), (0.02, 0.17), (0.03, 0.25))
+"""Independent width (x), depth (y) and height (z) ranges of ``box_broad`` (redrawn until the box fits)."""
+BROAD_STRETCH: tuple[float, float] = (0.7, 1.4)
+"""Range of the independent per-axis factors of ``can_broad`` and ``bottle_broad`` (log-uniform)."""
+
+
+def _build_box_broad(rng: np.random.Generator) -> tuple[mf.Manifold, None, dict]:
+    for _ in range(100):  # redraw rather than shrink: shrinking would tie the sides together again
+        size = np.array([_uniform(rng, low, high) for low, high in BROAD_BOX_RANGES_M])
+        if np.linalg.norm(size) <= _FIT_DIAGONAL:
+            break
+    else:
+        size = size * _fit_factor(float(np.linalg.norm(size)))
+    solid = mf.Manifold.cube(tuple(size), center=True).translate((0.0, 0.0, size[2] / 2))
+    return solid, None, {"kind": "broad", "lying": False, "scale_to_fit": 1.0}
+
+
+def _stretched(builder: Callable[[np.random.Generator], tuple[mf.Manifold, None, dict]]
+               ) -> Callable[[np.random.Generator], tuple[mf.Manifold, None, dict]]:
+    """A base family's builder followed by independent per-axis scaling (base stays at z = 0, axis at x = y = 0)."""
+
+    def build(rng: np.random.Generator) -> tuple[mf.Manifold, None, dict]:
+        solid, _, attributes = builder(rng)
+        factors = np.exp(rng.uniform(*np.log(BROAD_STRETCH), size=3))
+        (x0, y0, z0), (x1, y1, z1) = np.reshape(solid.bounding_box(), (2, 3))
+        fit = _fit_factor(float(np.linalg.norm(np.array([x1 - x0, y1 - y0, z1 - z0]) * factors)))
+        solid = solid.scale(tuple(factors * fit))
+        attributes.update(stretch_x=float(factors[0]), stretch_y=float(factors[1]), stretch_z=float(factors[2]),
+                          scale_to_fit=float(attributes.get("scale_to_fit", 1.0)) * fit)
+        return solid, None, attributes
+
+    return build
+
+
 _Builder = Callable[[np.random.Generator], tuple[mf.Manifold, mf.Manifold | None, dict]]
 _BUILDERS: Mapping[str, _Builder] = MappingProxyType({
     "mug": _build_mug,
@@ -565,4 +642,8 @@ _BUILDERS: Mapping[str, _Builder] = MappingProxyType({
     "bottle": _build_bottle,
     "bowl": _build_bowl,
     "irregular": _build_irregular,
+    "mug_broad": lambda rng: _build_mug(rng, broad=True),
+    "box_broad": _build_box_broad,
+    "can_broad": _stretched(_build_can),
+    "bottle_broad": _stretched(_build_bottle),
 })
