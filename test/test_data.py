@@ -378,6 +378,21 @@ def test_large_scale_is_many_objects_few_random_yaw_views_and_half_noisy():
         np.testing.assert_allclose(again.depth[v0:v0 + h, u0:u0 + w], depth[v0:v0 + h, u0:u0 + w], atol=6e-4)
 
 
+def test_broad_scale_mixes_prior_breaking_families_and_hides_mug_handles_behind_slits():
+    broad = {s.name: s for s in dataset_specs("all", "train", scale="broad", num_objects=8)}
+    assert broad["mugs"].families == ("mug", "mug_broad") and broad["mugs"].is_mugs
+    assert broad["mugs"].slit_mode == "random" and broad["mugs"].slit_range_m[1] > 0.2  # often wider than a mug
+    assert set(broad["ycb"].families) >= {"box_broad", "can_broad", "bottle_broad", "box"}
+    assert {str(i).split("-")[0] for i in broad["mugs"].object_identities()} == {"mug", "mug_broad"}
+    for split in ("val", "test"):
+        assert dataset_specs("all", split, scale="broad") == dataset_specs("all", split)
+    spec = dataclasses.replace(broad["mugs"], num_objects=2, views=6, grid_size=16)
+    identity = spec.object_identities()[1]
+    scene = ObjectScene(make_shape(identity.family, identity.seed))
+    samples = [make_sample(spec, spec.views + i, scene) for i in range(spec.views)]
+    assert all(s["slit_width_m"] is not None and s["family"] == "mug_broad" for s in samples)
+
+
 def test_a_build_spec_written_before_a_field_existed_still_resumes(tmp_path):
     spec = dataset_specs("mugs", "train", grid_size=16, num_objects=1, views=2)[0]
     first = build_dataset(spec, tmp_path / "a", progress=False)

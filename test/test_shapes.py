@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from pssnet_core.shapes import (
+    BROAD_FAMILIES,
     FAMILIES,
     MAX_DIAGONAL,
     SPLIT_RANGES,
@@ -28,8 +29,9 @@ def mugs() -> list[Shape]:
 
 
 def test_family_lists() -> None:
-    assert FAMILIES == ("mug", "box", "can", "bottle", "bowl", "irregular")
-    assert YCB_FAMILIES == FAMILIES[1:]
+    assert FAMILIES[:6] == ("mug", "box", "can", "bottle", "bowl", "irregular")
+    assert YCB_FAMILIES == FAMILIES[1:6]
+    assert FAMILIES[6:] == BROAD_FAMILIES == ("mug_broad", "box_broad", "can_broad", "bottle_broad")
 
 
 @pytest.mark.parametrize("family", FAMILIES)
@@ -45,7 +47,7 @@ def test_family_is_valid_solid_in_object_frame(family: str) -> None:
         low, high = shape.bounds
         assert low[2] == pytest.approx(0.0, abs=1e-7), "base must be at z = 0"
         assert (low[1] + high[1]) / 2 == pytest.approx(0.0, abs=1e-6)
-        if family != "mug":  # the handle shifts a mug's x-centre; its body axis is at x = 0 (tested below)
+        if family not in ("mug", "mug_broad"):  # a handle shifts a mug's x-centre; its body axis is at x = 0
             assert (low[0] + high[0]) / 2 == pytest.approx(0.0, abs=1e-6)
         assert 0.02 < shape.attributes["height"] < 0.18
         assert shape.attributes["volume"] == pytest.approx(mesh.volume, rel=1e-3)
@@ -54,7 +56,7 @@ def test_family_is_valid_solid_in_object_frame(family: str) -> None:
 
 @pytest.mark.parametrize("family", FAMILIES)
 def test_size_limit(family: str) -> None:
-    seeds = range(60) if family == "mug" else range(30)
+    seeds = range(60) if family.startswith("mug") else range(30)
     diagonals = [float(np.linalg.norm(np.ptp(make_shape(family, s).mesh.vertices, axis=0))) for s in seeds]
     assert max(diagonals) <= MAX_DIAGONAL
     assert min(diagonals) > 0.05, "objects should be hand-sized, not tiny"
@@ -210,3 +212,24 @@ def test_ycb_like_attributes(family: str) -> None:
     if family == "bowl":
         for s in shapes:  # open at the top and much lighter than a solid of the same outline
             assert s.mesh.volume < 0.5 * np.pi * s.attributes["rim_radius"] ** 2 * s.attributes["height"]
+
+
+def test_broad_families_break_the_base_families_priors() -> None:
+    """box_broad: depth independent of the visible width and reaching what the grid holds; can/bottle_broad:
+    proportions the base families never have; mug_broad: handles reaching further, and every mug with a handle
+    solid for the handle measures."""
+    def extents(family: str, count: int = 150) -> np.ndarray:
+        return np.array([make_shape(family, seed).mesh.extents for seed in range(count)])
+
+    base, broad = extents("box"), extents("box_broad")
+    assert abs(np.corrcoef(broad[:, 0], broad[:, 1])[0, 1]) < 0.5  # width says little about depth
+    assert broad[:, 1].max() > 0.14 > base[:, 1].max()  # deeper boxes than any base box
+    assert np.ptp(np.log(broad[:, 1] / broad[:, 0])) > 1.5 * np.ptp(np.log(base[:, 1] / base[:, 0]))
+    for family in ("can", "bottle"):
+        ratio = {f: np.log(e[:, 2] / e[:, 0]) for f, e in ((family, extents(family, 60)),
+                                                              (f"{family}_broad", extents(f"{family}_broad", 60)))}
+        assert np.ptp(ratio[f"{family}_broad"]) > np.ptp(ratio[family])
+    reaches = [make_shape("mug_broad", seed).attributes.get("handle_reach", 0.0) for seed in range(60)]
+    assert max(reaches) > 0.04 > 0.034  # procedural mugs reach at most 0.034 m
+    handled = [make_shape("mug_broad", seed) for seed in range(20)]
+    assert all(m.handle is not None for m in handled if m.attributes["has_handle"])

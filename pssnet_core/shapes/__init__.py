@@ -9,6 +9,7 @@ from pssnet_core.shapes.mesh_io import (
     normalize_mesh,
 )
 from pssnet_core.shapes.procedural import (
+    BROAD_FAMILIES,
     FAMILIES,
     MAX_DIAGONAL,
     SPLIT_RANGES,
@@ -22,7 +23,7 @@ from pssnet_core.shapes.procedural import (
 )
 
 __all__ = [
-    "FAMILIES", "LAYOUTS", "MAX_DIAGONAL", "SPLIT_RANGES", "YCB_FAMILIES", "MeshLoadError", "Shape", "ShapeError",
-    "ShapeId", "export_shapes", "load_mesh", "load_mesh_folder", "make_shape", "normalize_mesh", "split_of_seed",
-    "split_seeds",
+    "BROAD_FAMILIES", "FAMILIES", "LAYOUTS", "MAX_DIAGONAL", "SPLIT_RANGES", "YCB_FAMILIES", "MeshLoadError", "Shape",
+    "ShapeError", "ShapeId", "export_shapes", "load_mesh", "load_mesh_folder", "make_shape", "normalize_mesh",
+    "split_of_seed", "split_seeds",
 ]
