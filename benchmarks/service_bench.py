@@ -8,7 +8,9 @@
    over the network time the node itself reports for the same calls (its answer's message); the in-process
    stages split the rest from transport, executors and client. A transport floor (the same request refused at
    once) is printed too.
-2. Sustained topic rate: the camera publishes at 30 Hz, the node runs in continuous mode with max_rate_hz
+2. Sampler cost: the same request (grasps on) with the node's ``sampler`` set to posterior, then checked: p50 of
+   each and their ratio (the checked sampler decodes ``proposals_per_sample`` x more latents and checks them).
+3. Sustained topic rate: the camera publishes at 30 Hz, the node runs in continuous mode with max_rate_hz
    ``--max-rate``; reports the completion rate, the input stamp -> output received latency, and how many sets
    were superseded (dropped, never queued).
 
@@ -31,6 +33,9 @@ from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
+# Parts 1 and 3 measure the node's overheads around one network pass: the posterior sampler, whatever the default.
+POSTERIOR = "posterior"
+
 
 def percentiles(values_s: list[float]) -> str:
     v = np.asarray(values_s) * 1000
@@ -48,7 +53,7 @@ class InProcessCall:
         from pssnet_ros.completion_io import load_pipeline
 
         self.pipeline = load_pipeline(dict(params.defaults(), model_path=model, threads=threads,
-                                           num_samples=samples, up_vector=up))
+                                           num_samples=samples, up_vector=up, sampler=POSTERIOR))
         self.raw = serialize_message(request)
         self.samples = samples
         self.stages: dict[str, list[float]] = {}
@@ -120,7 +125,8 @@ def main() -> int:
     node = RosProcess.python_module(
         "pssnet_ros.completion_node",
         ["--ros-args", "-p", f"up_vector:={up}", "-p", f"threads:={args.threads}", "-p", f"num_samples:={args.samples}",
-         "-p", "max_input_age:=0.0"] + (["-p", f"model_path:={args.model}"] if args.model else []),
+         "-p", "max_input_age:=0.0", "-p", f"sampler:={POSTERIOR}"]
+        + (["-p", f"model_path:={args.model}"] if args.model else []),
         ros_env(args.domain_id), name="node")
     try:
         model_line = node.wait_for(r"model .*", timeout=180).group(0)
@@ -177,6 +183,28 @@ def main() -> int:
                           f"{p50 / network:.2f}x (target <= 1.3x); the rest outside the network "
                           f"{p50 - network:.1f} ms, of which in-process stages "
                           f"{split['in process, total'] - split['network']:.1f} ms")
+
+            # Sampler cost: posterior against checked, interleaved call by call (same load for both).
+            request = SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
+                                                num_samples=args.samples, compute_grasps=True)
+            samplers = ("posterior", "checked")
+            by_sampler: dict[str, list[float]] = {name: [] for name in samplers}
+            for call in range(args.calls + 2):
+                for name in samplers:
+                    assert all(r.successful for r in ros.set_parameters(sampler=name))
+                    t0 = time.perf_counter()
+                    response = ros.call(service, request)
+                    if call >= 2:  # the first two rounds warm up
+                        by_sampler[name].append(time.perf_counter() - t0)
+                    assert response.success, response.message
+            p50 = {name: float(np.percentile(v, 50) * 1000) for name, v in by_sampler.items()}
+            results["samplers"] = {"p50_ms": p50, "checked_over_posterior": p50["checked"] / p50["posterior"],
+                                   "calls": args.calls}
+            for name in samplers:
+                print(f"[bench] sampler {name}, grasps on: {percentiles(by_sampler[name])}")
+            print(f"[bench] checked / posterior p50 = {p50['checked']:.1f} / {p50['posterior']:.1f} ms = "
+                  f"{p50['checked'] / p50['posterior']:.2f}x (target <= 2x)")
+            assert all(r.successful for r in ros.set_parameters(sampler=POSTERIOR))
 
             # Sustained topic rate in continuous mode.
             result = ros.set_parameters(max_rate_hz=float(args.max_rate), continuous=True)
