@@ -100,3 +100,27 @@ gap-data: setup
 	for split in train val test; do $(PSSNET) dataset build --family mugs --split $$split --num-objects 12 \
 	  --views 12 --out data/gap --quiet; done
 
+
+# ---- Issue 25: data that breaks the generator's priors, and a fine-tuning comparison under equal budgets.
+# Two training sets of the same size and structure (random-yaw views, noise on half): `broad` (half the objects
+# from the *_broad families, mugs behind random slits too) and `control` (the base families only, as the shipped
+# model's data). The shipped model is fine-tuned on each for FT_STEPS steps (its flow, dropped from the export,
+# is pre-trained again first); then the mixture box head is re-fitted on the same data.
+BROAD_OBJECTS ?= 2000
+FT_STEPS ?= 2000
+SHIPPED := pssnet_core/checkpoints/default_pssnet_32.pt
+
+datasets-broad: setup
+	$(PSSNET) dataset build --family all --split train --scale broad --num-objects $(BROAD_OBJECTS) \
+	  --out data/broad --grid 32 --workers 1 --quiet
+	$(PSSNET) dataset build --family all --split train --scale large --num-objects $(BROAD_OBJECTS) \
+	  --out data/control --grid 32 --workers 1 --quiet
+
+# make -j2 finetune-broad finetune-control (resumable: a rerun continues the run's last.pt)
+finetune-%: setup
+	$(PSSNET) train --model pssnet --data data/$*/train/mugs,data/$*/train/ycb \
+	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/ft_$* --max-steps $(FT_STEPS) --threads 1 \
+	  --val-every 500 --no-progress --seed 0 --precision fp32 \
+	  $(if $(wildcard $(RUNS)/ft_$*/last.pt),--resume,--init-from $(SHIPPED))
+	$(PSSNET) fit-box-head --checkpoint $(RUNS)/ft_$*/best.pt --data data/$*/train/mugs,data/$*/train/ycb \
+	  --out $(RUNS)/ft_$*_mix16/best.pt --components 16
