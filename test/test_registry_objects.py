@@ -7,7 +7,6 @@ and oriented like a package would): no network, no third-party mesh. The real ma
 from __future__ import annotations
 
 import hashlib
-import io
 import re
 import subprocess
 import zipfile
