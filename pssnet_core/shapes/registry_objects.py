@@ -42,7 +42,6 @@ from pathlib import Path
 
 import manifold3d as mf
 import numpy as np
-import open3d as o3d
 import trimesh
 
 from pssnet_core.shapes.mesh_io import MeshLoadError, load_mesh
@@ -361,6 +360,8 @@ def _to_trimesh(solid: mf.Manifold) -> trimesh.Trimesh:
 
 
 def _fill_holes(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    import open3d as o3d  # only for repairs: importing pssnet_core.shapes stays light
+
     tensor = o3d.t.geometry.TriangleMesh(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float64)),
                                          o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.int64)))
     filled = tensor.fill_holes(hole_size=1e9)  # every hole, whatever its size
