@@ -17,7 +17,7 @@ import numpy as np
 from pssnet_core.data.datasets import dataset_specs, make_sample
 from pssnet_core.data.scenes import ObjectScene
 from pssnet_core.data.store import write_shard
-from pssnet_core.shapes import make_shape
+from pssnet_core.shapes import shape_of
 
 
 def bench(name: str, grid: int, objects: int) -> dict[str, float]:
@@ -27,7 +27,7 @@ def bench(name: str, grid: int, objects: int) -> dict[str, float]:
     samples = []
     start = time.perf_counter()
     for identity in spec.object_identities():
-        scene = ObjectScene(make_shape(identity.family, identity.seed), threads=1)
+        scene = ObjectScene(shape_of(identity), threads=1)
         obj = len(samples) // spec.views
         samples.extend(make_sample(spec, i, scene) for i in range(obj * spec.views, (obj + 1) * spec.views))
     made = time.perf_counter() - start

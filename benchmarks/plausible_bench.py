@@ -36,7 +36,7 @@ from pssnet_core.evaluation.plausible import (  # noqa: E402
     MeshTable,
     PlausibleConfig,
     PlausibleSets,
-    ProceduralMeshes,
+    ShapeMeshes,
     _PairJudge,
     compute_plausible_sets,
     icp_cloud,
@@ -246,7 +246,7 @@ def main() -> int:
         from pssnet_core.evaluation.testsets import load_test_set
 
         views, _ = load_test_set(args.data)
-        meshes = ProceduralMeshes()
+        meshes = ShapeMeshes()
         source = args.data
     else:
         views, meshes = synthetic_mugs(args.synthetic_mugs, args.views, args.grid)

@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from pssnet_core.data.build import build_dataset  # noqa: E402
 from pssnet_core.data.datasets import dataset_specs  # noqa: E402
 from pssnet_core.data.store import DatasetReader  # noqa: E402
-from pssnet_core.evaluation.plausible import PlausibleConfig, ProceduralMeshes, compute_plausible_sets  # noqa: E402
+from pssnet_core.evaluation.plausible import PlausibleConfig, ShapeMeshes, compute_plausible_sets  # noqa: E402
 from pssnet_core.evaluation.testsets import load_test_set  # noqa: E402
 from pssnet_core.ray_tasks import RayConfig, TaskRunner, descendants, process_stats  # noqa: E402
 
@@ -125,7 +125,7 @@ def measure(label: str, config: RayConfig, args: argparse.Namespace) -> Measured
         views, _ = load_test_set(built.path)
         refs = np.linspace(0, len(views) - 1, min(args.references, len(views))).round().astype(int).tolist()
         with plausible.timed():
-            sets = compute_plausible_sets(views, ProceduralMeshes(), PlausibleConfig(deltas=(0.04, 0.01)), refs,
+            sets = compute_plausible_sets(views, ShapeMeshes(), PlausibleConfig(deltas=(0.04, 0.01)), refs,
                                           runner=runner, progress=False)
         shards = shard_digest(built.path)
     empty_ms = empty_task_ms(runner, args.empty_tasks)

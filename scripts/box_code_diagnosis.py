@@ -24,7 +24,7 @@ from pssnet_core.evaluation.ambiguity import mug_parts, plausible_handle_arc
 from pssnet_core.evaluation.handles import HandleGeometry, circular_difference_deg, handle_azimuths, turned
 from pssnet_core.evaluation.testsets import load_test_set
 from pssnet_core.models.checkpoint import load_checkpoint
-from pssnet_core.shapes import ShapeId, make_shape
+from pssnet_core.shapes import shape_of
 
 #: corner signs in Shape.box_corners order (binary counting, x fastest)
 SIGNS = np.array([[(i & 1) * 2 - 1, ((i >> 1) & 1) * 2 - 1, ((i >> 2) & 1) * 2 - 1] for i in range(8)], float)
@@ -67,8 +67,7 @@ def main() -> None:
     rates: dict[str, list[float]] = {"allowed boxes": [], "posterior samples": [], "snapped samples": []}
     errors: list[float] = []
     for view in views:
-        sid = ShapeId.parse(view.identity)
-        shape = make_shape(sid.family, sid.seed)
+        shape = shape_of(view.identity)
         arc = plausible_handle_arc(view, view.depth_view, mug_parts(shape)).arc(0.01)
         if len(arc) < 3:
             continue

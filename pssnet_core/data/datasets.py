@@ -19,6 +19,12 @@ The experiments (DESIGN.md, paper Sec. 5):
 * ``ycb_narrow`` / ``ycb_wide`` (test): the same 24 rotations, each seen through a fixed slit (3.6 cm / 18 cm)
   at three translations of the object across the slit (-1, 0, +1 cm, limited to a quarter of the object's
   visible width so that the slit always stays over the object's central part): 72 views per object.
+* ``oof_mugs``, ``oof_narrow``, ``oof_wide`` (test only, ``--family oof``): the out-of-family test sets, objects the
+  training data never sees: mugs of the independent generator (:mod:`pssnet_core.shapes.independent`) and real
+  modelled mugs (:mod:`pssnet_core.shapes.registry_objects`) turned like ``mugs`` in 15 degree steps; independent
+  and real boxes, cans and bottles behind the same fixed slits as ``ycb_narrow`` / ``ycb_wide``, 24 rotations each,
+  centred on the slit. Same cameras as every other set. ``--num-objects N`` keeps the first N objects of a set
+  (the independent ones come first, so a small set needs no registry download).
 * ``--scale large`` (train only): many objects, few views each (20,000 mugs and 20,000 ycb objects x 4
   views = 160,000 views). With 4 views the fixed yaw steps above would show every object from the same few
   sides, so each view draws its yaw uniformly in [0, 360) (``random_yaw``; ycb: every other view tipped 90
@@ -50,7 +56,8 @@ from pssnet_core.data.scenes import (
     posed_box_corners,
 )
 from pssnet_core.geometry import CameraIntrinsics, GridConfig, ObservationError
-from pssnet_core.shapes import YCB_FAMILIES, Shape, ShapeId, make_shape, split_seeds
+from pssnet_core.shapes import MUG_FAMILIES, YCB_FAMILIES, Shape, ShapeId, shape_of, split_seeds
+from pssnet_core.shapes.registry_objects import registry_identities
 
 MUG_VIEWS = 72
 YCB_ROTATIONS = 24
@@ -58,7 +65,12 @@ YCB_TRANSLATION_STEPS = (-1, 0, 1)
 NARROW_SLIT_M = 0.036
 WIDE_SLIT_M = 0.18
 SLIT_MODES = ("none", "random", "fixed")
-DATASET_NAMES = ("mugs", "ycb", "ycb_narrow", "ycb_wide")
+DATASET_NAMES = ("mugs", "ycb", "ycb_narrow", "ycb_wide", "oof_mugs", "oof_narrow", "oof_wide")
+FAMILY_CHOICES = ("mugs", "ycb", "all", "oof")
+# The out-of-family test sets (objects per source; evaluation cost grows with the square of a set's views).
+OOF_MUG_VIEWS = 24
+OOF_INDEPENDENT_MUGS = 16
+OOF_INDEPENDENT_SLIT: dict[str, int] = {"ibox": 10, "ican": 3, "ibottle": 3}
 MAX_ATTEMPTS = 20
 
 # Default object counts: `--family all --split train` gives 120 * 72 + 300 * 24 = 15,840 samples; every
@@ -114,6 +126,8 @@ class DatasetSpec:
             (ycb: tipped 90 degrees on odd views); for datasets of many objects with few views each.
         image_width: image width (pixels; Kinect-like intrinsics scaled to it).
         image_height: image height (pixels).
+        identities: the objects by identity, in order (then ``num_objects`` must equal their number and
+            ``families`` name their families); empty: ``families`` cycled over the split's seeds.
     """
 
     name: str
@@ -142,6 +156,7 @@ class DatasetSpec:
     random_yaw: bool = False
     image_width: int = 640
     image_height: int = 480
+    identities: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.split not in ("train", "val", "test"):
@@ -164,11 +179,18 @@ class DatasetSpec:
             raise DatasetSpecError(f"tilt range must lie in [0, 80) degrees, got {self.tilt_range_deg}")
         if not 0 < self.distance_range_m[0] <= self.distance_range_m[1]:
             raise DatasetSpecError(f"distance range must be positive and ordered, got {self.distance_range_m}")
+        if self.identities:
+            if len(self.identities) != self.num_objects:
+                raise DatasetSpecError(f"{len(self.identities)} identities for {self.num_objects} objects")
+            families = {ShapeId.parse(i).family for i in self.identities}
+            if families != set(self.families):
+                raise DatasetSpecError(f"families {self.families} do not match the identities' {sorted(families)}")
         _ = self.grid_config  # validates size and margins
 
     @property
     def is_mugs(self) -> bool:
-        return set(self.families) <= {"mug", "mug_broad"}
+        """Mug experiment (yaw steps or random yaw): every family is a mug family."""
+        return all(f in MUG_FAMILIES for f in self.families)
 
     @property
     def combinations(self) -> int:
@@ -202,6 +224,8 @@ class DatasetSpec:
 
     def object_identities(self) -> list[ShapeId]:
         """Identity of every object, in order."""
+        if self.identities:
+            return [ShapeId.parse(i) for i in self.identities]
         seeds = split_seeds(self.split, self.num_objects)
         return [ShapeId(self.families[i % len(self.families)], seed) for i, seed in enumerate(seeds)]
 
@@ -217,6 +241,7 @@ class DatasetSpec:
         """Inverse of :meth:`to_dict`."""
         data = dict(data)
         data["families"] = tuple(data["families"])
+        data["identities"] = tuple(data.get("identities", ()))
         for key in ("slit_range_m", "distance_range_m", "tilt_range_deg"):
             data[key] = tuple(data[key])
         data["noise"] = None if data.get("noise") is None else SensorNoise(**data["noise"])
@@ -230,7 +255,7 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
     """The datasets of an experiment family and split.
 
     Args:
-        family: "mugs", "ycb" or "all".
+        family: "mugs", "ycb", "all" or "oof" (the out-of-family test sets; test split only).
         split: "train", "val" or "test"; "val" is built like "train" (random slits) from its own objects, to
             validate during training; the ycb test split is two datasets, ``ycb_narrow`` and ``ycb_wide``.
         grid_size: voxels per grid edge (32 or 64 in the paper's experiments).
@@ -248,10 +273,12 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
     """
     if scale not in SCALES:
         raise DatasetSpecError(f"scale must be one of {SCALES}, got {scale!r}")
-    if family not in ("mugs", "ycb", "all"):
-        raise DatasetSpecError(f"family must be mugs, ycb or all, got {family!r}")
+    if family not in FAMILY_CHOICES:
+        raise DatasetSpecError(f"family must be one of {FAMILY_CHOICES}, got {family!r}")
     if split not in ("train", "val", "test"):
         raise DatasetSpecError(f"split must be train, val or test, got {split!r}")
+    if family == "oof" and split != "test":
+        raise DatasetSpecError("the out-of-family sets (--family oof) are test sets only: use --split test")
     common: dict[str, Any] = {"split": split, "grid_size": grid_size, "seed": seed, "noise": noise}
     if front_margin is not None:
         common["front_margin"] = float(front_margin)
@@ -272,6 +299,9 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
                     translations=len(YCB_TRANSLATION_STEPS), views=YCB_ROTATIONS * len(YCB_TRANSLATION_STEPS),
                     ycb_translation_m=0.0, num_objects=DEFAULT_OBJECTS[(name, split)], objects_per_shard=4,
                     **common))
+    if family == "oof":
+        specs += _oof_specs(common, num_objects)
+        num_objects = None  # applied to the identity lists
     overrides: dict[str, Any] = {}
     if scale in ("large", "broad") and split == "train":
         overrides.update(num_objects=LARGE_TRAIN_OBJECTS, views=LARGE_TRAIN_VIEWS, random_yaw=True,
@@ -287,6 +317,30 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
     if views is not None:
         overrides["views"] = int(views)
     return [replace(s, **overrides) for s in specs] if overrides else specs
+
+
+def _oof_specs(common: dict[str, Any], num_objects: int | None) -> list[DatasetSpec]:
+    """``oof_mugs``, ``oof_narrow`` and ``oof_wide``: independent objects first, then the registry's."""
+    test_seeds = split_seeds("test", max(OOF_INDEPENDENT_MUGS, *OOF_INDEPENDENT_SLIT.values()))
+    real = registry_identities()
+    mugs = [str(ShapeId("imug", s)) for s in test_seeds[:OOF_INDEPENDENT_MUGS]]
+    mugs += [str(i) for i in real if i.family in MUG_FAMILIES]
+    slit = [str(ShapeId(f, s)) for f, n in OOF_INDEPENDENT_SLIT.items() for s in test_seeds[:n]]
+    slit += [str(i) for i in real if i.family not in MUG_FAMILIES]
+
+    def spec(name: str, identities: list[str], **kwargs: Any) -> DatasetSpec:
+        chosen = tuple(identities[:num_objects] if num_objects is not None else identities)
+        if not chosen:
+            raise DatasetSpecError(f"num_objects must be >= 1, got {num_objects}")
+        families = tuple(dict.fromkeys(ShapeId.parse(i).family for i in chosen))
+        return DatasetSpec(name=name, families=families, identities=chosen, num_objects=len(chosen),
+                           objects_per_shard=4, **kwargs, **common)
+
+    out = [spec("oof_mugs", mugs, views=OOF_MUG_VIEWS)]
+    for name, width in (("oof_narrow", NARROW_SLIT_M), ("oof_wide", WIDE_SLIT_M)):
+        out.append(spec(name, slit, stream="oof_slit_test", slit_mode="fixed", slit_width_m=width, translations=1,
+                        views=YCB_ROTATIONS, ycb_translation_m=0.0))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- samples
@@ -418,7 +472,7 @@ def make_sample(spec: DatasetSpec, index: int, scene: ObjectScene) -> dict[str, 
         "grid_pose": obs.pose.to_dict(),
         "handle_visible": view.handle_visible,
         "handle_area_m2": view.handle_area_m2,
-        "has_handle": shape.handle is not None if shape.identity.family == "mug" else None,
+        "has_handle": shape.handle is not None if shape.identity.family in MUG_FAMILIES else None,
         "slit_width_m": None if plan.slit is None else plan.slit.width_m,
         "slit_columns": None if view.slit_columns is None else list(view.slit_columns),
         "noise": asdict(spec.noise) if plan.noisy else None,
@@ -467,8 +521,7 @@ def rerender(sample: dict[str, Any], shape: Shape | None = None) -> RenderedView
     Returns:
         A :class:`pssnet_core.data.scenes.RenderedView`; its depth equals the stored crop inside the crop.
     """
-    identity = ShapeId.parse(sample["identity"])
-    shape = shape if shape is not None else make_shape(identity.family, identity.seed)
+    shape = shape if shape is not None else shape_of(sample["identity"])
     slit_columns = sample.get("slit_columns")
     view = ObjectScene(shape).render(
         np.asarray(sample["object_pose"]), np.asarray(sample["camera_pose"]), sample_intrinsics(sample),
@@ -484,7 +537,7 @@ def rerender(sample: dict[str, Any], shape: Shape | None = None) -> RenderedView
 
 
 __all__ = [
-    "CROP_MARGIN_PX", "DATASET_NAMES", "DEFAULT_OBJECTS", "SCALES", "DatasetSpec", "DatasetSpecError", "MUG_VIEWS",
-    "NARROW_SLIT_M", "WIDE_SLIT_M", "YCB_ROTATIONS", "ViewPlan", "dataset_specs", "full_images", "make_sample",
-    "plan_view", "rerender", "sample_intrinsics",
+    "CROP_MARGIN_PX", "DATASET_NAMES", "DEFAULT_OBJECTS", "FAMILY_CHOICES", "SCALES", "DatasetSpec", "DatasetSpecError",
+    "MUG_VIEWS", "NARROW_SLIT_M", "WIDE_SLIT_M", "YCB_ROTATIONS", "ViewPlan", "dataset_specs", "full_images",
+    "make_sample", "plan_view", "rerender", "sample_intrinsics",
 ]

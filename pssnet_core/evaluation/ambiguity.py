@@ -24,10 +24,10 @@ Per view and model:
 On views with the handle visible the samples should agree with the truth: ``error_deg`` = mean circular
 distance of the sampled handles from the true one.
 
-**Boxes through the narrow slit** (``ycb_narrow``, objects of the box family). The box is stretched or shrunk
-along its own axis that points most nearly away from the camera (the axis closest to the grid's x, the
-horizontal viewing direction, see :class:`pssnet_core.geometry.GridPose`), keeping the face nearest the camera
-where it is, in steps of ``extent_step_voxels`` voxels of length, as long as it stays inside the grid. The
+**Boxes through the narrow slit** (``ycb_narrow`` or ``oof_narrow``, objects of a box family). The box is
+stretched or shrunk along its own axis that points most nearly away from the camera (the axis closest to the
+grid's x, the horizontal viewing direction, see :class:`pssnet_core.geometry.GridPose`), keeping the face nearest
+the camera where it is, in steps of ``extent_step_voxels`` voxels of length, as long as it stays inside the grid. The
 lengths the observation model accepts form the plausible range of the hidden extent. Extents are compared in
 the grid: the x extent (voxels) of the largest connected part of an occupancy grid
 (:func:`grid_x_extent`), the same measure for the samples and for the accepted boxes voxelised with the
@@ -40,6 +40,10 @@ The observation model's tolerance delta is a parameter: every plausible set is c
 ``deltas`` at once (default the evaluation's scaled 1 cm, then the paper's 4 cm; DESIGN.md). Note that a larger
 delta is not simply more permissive: the unreliable pixels are those whose depth gradient exceeds delta, so a
 larger delta compares more pixels near depth edges, and some candidates accepted at 1 cm fail at 4 cm.
+
+Which test sets: ``sets`` names one mug set (``mugs`` or ``oof_mugs``, of any mug family: procedural, independent
+or real) and/or one narrow-slit set (``ycb_narrow`` or ``oof_narrow``); meshes come from
+:func:`pssnet_core.shapes.shape_of`, whatever made the object.
 
 The plausible sets are model-independent: :func:`run_ambiguity` computes them once per view and caches them in
 the output directory (keyed by the test set's content and the parameters), so re-runs with other checkpoints
@@ -314,7 +318,7 @@ class MugParts:
 
 
 def mug_parts(shape: Any) -> MugParts:
-    """Splits a procedural mug (:class:`pssnet_core.shapes.Shape` with a handle) into body and handle."""
+    """Splits a mug (:class:`pssnet_core.shapes.Shape` with a handle, any source) into body and handle."""
     if shape.handle is None:
         raise AmbiguityError(f"{shape.identity} has no handle")
     body = shape.mesh.difference(shape.handle, engine="manifold")
@@ -545,6 +549,8 @@ class AmbiguityRun:
 
     Attributes:
         data: directory holding the test sets (``DATA/mugs`` or ``DATA/test/mugs``, ``.../ycb_narrow``).
+        sets: the test sets to measure: at most one mug set (``mugs``, ``oof_mugs``) and one narrow-slit set
+            (``ycb_narrow``, ``oof_narrow``).
         out: output directory (tables, figures, and the plausible-set cache under ``plausible_cache``).
         samples: completions per view.
         box_temperatures: box temperatures for models with a box part (others run at 1.0 only).
@@ -558,6 +564,7 @@ class AmbiguityRun:
 
     data: str
     out: str
+    sets: tuple[str, ...] = ("mugs", "ycb_narrow")
     samples: int = 20
     box_temperatures: tuple[float, ...] = (1.0,)
     max_views: int | None = None
@@ -613,11 +620,10 @@ class _TestSet:
         self._parts: dict[str, MugParts] = {}
 
     def shape(self, identity: str) -> Any:
-        from pssnet_core.shapes import ShapeId, make_shape
+        from pssnet_core.shapes import shape_of
 
         if identity not in self._shapes:
-            sid = ShapeId.parse(identity)
-            self._shapes[identity] = make_shape(sid.family, sid.seed)
+            self._shapes[identity] = shape_of(identity)
         return self._shapes[identity]
 
     def mug(self, identity: str) -> MugParts:
@@ -678,8 +684,14 @@ def run_ambiguity(run: AmbiguityRun, completers: Mapping[str, Any]) -> dict[str,
     """
     from tqdm import tqdm
 
-    from pssnet_core.evaluation.testsets import find_test_set
+    from pssnet_core.evaluation.testsets import MUG_SETS, NARROW_SETS, build_command, find_test_set
+    from pssnet_core.shapes import BOX_FAMILIES
 
+    mug_sets = [s for s in run.sets if s in MUG_SETS]
+    slit_sets = [s for s in run.sets if s in NARROW_SETS]
+    if len(mug_sets) > 1 or len(slit_sets) > 1 or len(mug_sets) + len(slit_sets) != len(run.sets) or not run.sets:
+        raise AmbiguityError(f"sets must name at most one mug set {MUG_SETS} and one narrow-slit set {NARROW_SETS}, "
+                             f"got {list(run.sets)}")
     if run.samples < 2:
         raise AmbiguityError(f"samples must be >= 2 to measure a spread, got {run.samples}")
     if not completers:
@@ -690,10 +702,11 @@ def run_ambiguity(run: AmbiguityRun, completers: Mapping[str, Any]) -> dict[str,
     out = Path(run.out)
     cache_dir = Path(run.cache_dir) if run.cache_dir else out / "plausible_cache"
     t_start = time.perf_counter()
-    mugs_root, slit_root = find_test_set(run.data, "mugs"), find_test_set(run.data, "ycb_narrow")
+    mugs_root = find_test_set(run.data, mug_sets[0]) if mug_sets else None
+    slit_root = find_test_set(run.data, slit_sets[0]) if slit_sets else None
     if mugs_root is None and slit_root is None:
-        raise AmbiguityError(f"neither a mugs nor a ycb_narrow test set under {run.data} (build them with "
-                             "`pssnet dataset build --family all --split test`)")
+        raise AmbiguityError(f"none of the test sets {list(run.sets)} under {run.data} (build them with "
+                             f"`{build_command(run.sets[0])}`)")
     hidden: list[EvalView] = []
     visible: list[EvalView] = []
     slit: list[EvalView] = []
@@ -710,11 +723,11 @@ def run_ambiguity(run: AmbiguityRun, completers: Mapping[str, Any]) -> dict[str,
         arcs, costs["handle_arcs"] = _plausible_sets(mugs, hidden, "handle_arcs", run, cache_dir)
     if slit_root is not None:
         narrow = _TestSet(slit_root, run.progress)
-        slit = _spaced([v for v in narrow.views if v.meta.get("family") == "box"], run.max_views)
+        slit = _spaced([v for v in narrow.views if v.meta.get("family") in BOX_FAMILIES], run.max_views)
         ranges, costs["slit_ranges"] = _plausible_sets(narrow, slit, "slit_ranges", run, cache_dir)
     if not (hidden or visible or slit):
-        raise AmbiguityError(f"no measurable views under {run.data}: no round mug with a handle in the mugs set and "
-                             "no box in ycb_narrow")
+        raise AmbiguityError(f"no measurable views in {list(run.sets)} under {run.data}: no round mug with a handle "
+                             "in the mug set and no box in the narrow-slit set")
 
     for name, completer in completers.items():
         size = (hidden + visible + slit)[0].grid_pose.size
@@ -881,7 +894,8 @@ def markdown_ambiguity(summary: Sequence[dict[str, Any]], run: AmbiguityRun, cos
     """The Markdown report: one table per delta (rows = method x box temperature), then costs."""
     c = run.config
     lines = ["# Ambiguity: do the samples spread over what the view allows?", "",
-             f"Test sets under `{run.data}`; {run.samples} samples per view, seed {run.seed} (view i uses seed + i, "
+             f"Test sets {', '.join(f'`{s}`' for s in run.sets)} under `{run.data}`; {run.samples} samples per view, "
+             f"seed {run.seed} (view i uses seed + i, "
              "the same at every box temperature). See `pssnet_core/evaluation/ambiguity.py` for the definitions.", "",
              f"- Hidden handle: plausible arc = azimuths ({c.azimuth_step_deg:g} deg steps) where the mug turned about "
              f"its axis passes the observation model; coverage = arc azimuths with a sampled handle within "

@@ -20,11 +20,20 @@ from pssnet_core.evaluation.plausible import (
     PlausibleConfig,
     PlausibleSetError,
     PlausibleSets,
-    ProceduralMeshes,
+    ShapeMeshes,
     cached_plausible_sets,
     dataset_fingerprint,
 )
-from pssnet_core.evaluation.testsets import TEST_SETS, evenly_spaced_views, find_test_set, load_test_set
+from pssnet_core.evaluation.testsets import (
+    MUG_SETS,
+    NARROW_SETS,
+    PAPER_TEST_SETS,
+    TEST_SETS,
+    build_command,
+    evenly_spaced_views,
+    find_test_set,
+    load_test_set,
+)
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 
 PAPER_DELTA = 0.04
@@ -44,7 +53,8 @@ def _floats(text: str) -> tuple[float, ...]:
 
 def _add_plausible_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="directory holding the test sets (DATA/mugs or DATA/test/mugs, ...)")
-    p.add_argument("--sets", default=",".join(TEST_SETS), help=f"test sets (default {','.join(TEST_SETS)})")
+    p.add_argument("--sets", default=",".join(PAPER_TEST_SETS),
+                   help=f"test sets (default {','.join(PAPER_TEST_SETS)}; known: {','.join(TEST_SETS)})")
     p.add_argument("--max-observations", type=int, default=None,
                    help="score only this many observations per set (evenly spaced); candidates are always all")
     p.add_argument("--dense-mugs", type=int, default=0,
@@ -133,6 +143,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a.add_argument("--checkpoints", required=True,
                    help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
     a.add_argument("--data", required=True, help="directory holding the test sets (mugs, ycb_narrow)")
+    a.add_argument("--sets", default="mugs,ycb_narrow",
+                   help="one mug set and/or one narrow-slit set (default mugs,ycb_narrow; the out-of-family ones: "
+                        "oof_mugs,oof_narrow)")
     a.add_argument("--samples", type=int, default=20, help="completions per view")
     a.add_argument("--samplers", type=_names, default=("posterior",),
                    help="posterior sampling only, or also each model behind the plausibility-checked sampler (method "
@@ -178,7 +191,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--train-data", required=True,
                    help="training datasets, comma separated; each a dataset or a folder of them (data/d32/train)")
     m.add_argument("--data", required=True, help="directory holding the test sets")
-    m.add_argument("--sets", default=",".join(TEST_SETS), help=f"test sets (default {','.join(TEST_SETS)})")
+    m.add_argument("--sets", default=",".join(PAPER_TEST_SETS),
+                   help=f"test sets (default {','.join(PAPER_TEST_SETS)}; known: {','.join(TEST_SETS)})")
     m.add_argument("--samples", type=int, default=10, help="completions per view")
     m.add_argument("--max-views", type=int, default=None, help="at most K views per test set, evenly spaced")
     m.add_argument("--top-k", type=int, default=16, help="exact chamfer on this many prefilter candidates")
@@ -273,17 +287,16 @@ def _plausible_for(args: argparse.Namespace, deltas: tuple[float, ...],
     for name in _set_names(args.sets):
         root = find_test_set(args.data, name)
         if root is None:
-            print(f"{name}: no test set under {args.data} (skipped; build it with "
-                  f"`pssnet dataset build --family {'mugs' if name == 'mugs' else 'ycb'} --split test`)")
+            print(f"{name}: no test set under {args.data} (skipped; build it with `{build_command(name)}`)")
             continue
         found_any = True
         views, _ = load_test_set(root, progress=progress)
         refs = _references(len(views), args.max_observations)
-        if name == "mugs" and refs is not None and getattr(args, "dense_mugs", 0):
+        if name in MUG_SETS and refs is not None and getattr(args, "dense_mugs", 0):
             refs = sorted(set(refs) | set(_dense_mug_views(views, args.dense_mugs, args.dense_step)))
         cache = Path(args.cache_dir) if args.cache_dir else root / "plausible_cache"
         t0 = time.perf_counter()
-        sets, path, hit = cached_plausible_sets(views, ProceduralMeshes(), dataset_fingerprint(root), cache, config,
+        sets, path, hit = cached_plausible_sets(views, ShapeMeshes(), dataset_fingerprint(root), cache, config,
                                                 refs, runner=runner, progress=progress,
                                                 desc=f"plausible {name}", recompute=args.recompute)
         s = sets.stats
@@ -395,14 +408,14 @@ def run_evaluation(args: argparse.Namespace, completers: dict[str, Any]) -> dict
         t0 = time.perf_counter()
         for name, (views, sets, refs) in loaded.items():
             # One example per figure set: the first occluded-handle mug, the first narrow-slit observation.
-            if name == "mugs":
+            if name in MUG_SETS:
                 hidden = [i for i in refs if views[i].meta.get("handle_visible") is False]
                 keep = hidden[len(hidden) // 2:][:1]
-            elif name == "ycb_narrow":
+            elif name in NARROW_SETS:
                 keep = refs[len(refs) // 2:][:1]
             else:
                 keep = []
-            evaluate_set(name, views, ProceduralMeshes(), sets, completers, deltas, args.samples, args.seed, refs,
+            evaluate_set(name, views, ShapeMeshes(), sets, completers, deltas, args.samples, args.seed, refs,
                          keep=keep, progress=not args.no_progress, output=output, runner=runner,
                          gpus_per_task=gpus_per_task)
     methods = list(completers)
@@ -560,7 +573,7 @@ def ambiguity_run(args: argparse.Namespace) -> Any:
         azimuth_step_deg=args.azimuth_step, arc_tolerance_deg=args.arc_tolerance, arc_margin_deg=args.arc_margin,
         extent_step_voxels=args.extent_step, extent_tolerance_voxels=args.extent_tolerance,
         extent_margin_voxels=args.extent_margin, rerender=not args.no_rerender)
-    return AmbiguityRun(data=args.data, out=args.out, samples=args.samples,
+    return AmbiguityRun(data=args.data, out=args.out, sets=tuple(_set_names(args.sets)), samples=args.samples,
                         box_temperatures=tuple(args.box_temperatures), max_views=args.max_views, seed=args.seed,
                         progress=not args.no_progress, figure_views=args.figure_views, cache_dir=args.cache_dir,
                         config=config)

@@ -1,7 +1,8 @@
 """Where sampled mugs put their handle: the measure behind "hidden handles differ, visible ones are reproduced".
 
 For a test mug with a round body and a handle, every sampled completion is moved into the mug's own frame
-(vertical axis at x = y = 0, the true handle along +x, see :mod:`pssnet_core.shapes.procedural`). Voxels
+(vertical axis at x = y = 0, the true handle along +x, see :mod:`pssnet_core.shapes.procedural`; mugs of the
+independent generator and real ones follow the same frame). Voxels
 that stick out of the body (radial distance beyond the body's radius plus one voxel) at the height of the
 true handle are the sample's handle; their mean azimuth is the handle's position (0 degrees = where the true
 handle is). Per view and method this gives:
@@ -74,7 +75,8 @@ class HandleStats:
 
 
 def handle_geometries(identities: Iterable[str], limit: int | None = None) -> dict[str, HandleGeometry]:
-    """:class:`HandleGeometry` of every measurable mug among ``identities`` (procedural "mug-<seed>" ids).
+    """:class:`HandleGeometry` of every measurable mug among ``identities`` (mugs of any source: "mug-", "imug-",
+    "rmug-" identities).
 
     Square bodies, handle-less mugs and other families are skipped (they have no handle azimuth).
 
@@ -82,7 +84,7 @@ def handle_geometries(identities: Iterable[str], limit: int | None = None) -> di
         identities: object identities, in the order wanted (repeats are measured once).
         limit: stop after this many measurable mugs (None = all).
     """
-    from pssnet_core.shapes import ShapeError, ShapeId, make_shape  # only needed when meshes are rebuilt
+    from pssnet_core.shapes import MUG_FAMILIES, ShapeError, ShapeId, shape_of  # only when meshes are rebuilt
 
     out: dict[str, HandleGeometry] = {}
     for identity in identities:
@@ -94,10 +96,10 @@ def handle_geometries(identities: Iterable[str], limit: int | None = None) -> di
             sid = ShapeId.parse(identity)
         except ShapeError:
             continue
-        if sid.family != "mug":
+        if sid.family not in MUG_FAMILIES:
             continue
         try:
-            out[identity] = HandleGeometry.of(make_shape(sid.family, sid.seed))
+            out[identity] = HandleGeometry.of(shape_of(sid))
         except HandleMeasureError:
             continue
     return out

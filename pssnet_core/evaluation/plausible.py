@@ -102,17 +102,17 @@ class MeshTable:
             raise PlausibleSetError(f"no mesh for identity {identity!r}") from None
 
 
-class ProceduralMeshes:
-    """Meshes of procedural objects by identity ("mug-00042") via ``pssnet_core.shapes.make_shape``."""
+class ShapeMeshes:
+    """Meshes of any object by identity ("mug-00042", "imug-2000003", "rmug-00000") via
+    ``pssnet_core.shapes.shape_of``."""
 
     def __call__(self, identity: str) -> tuple[np.ndarray, np.ndarray]:
-        from pssnet_core.shapes import ShapeError, ShapeId, make_shape  # only needed when meshes are rebuilt
+        from pssnet_core.shapes import RegistryObjectError, ShapeError, shape_of  # only when meshes are rebuilt
 
         try:
-            shape_id = ShapeId.parse(identity)
-        except ShapeError as error:
+            mesh = shape_of(identity).mesh
+        except (ShapeError, RegistryObjectError) as error:
             raise PlausibleSetError(str(error)) from error
-        mesh = make_shape(shape_id.family, shape_id.seed).mesh
         return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
@@ -637,5 +637,5 @@ def plausible_shape_occupancy(views: Sequence[EvalView], meshes: MeshSource | Ca
 
 
 __all__ = ["EvalView", "MeshSource", "MeshTable", "ObservationModelError", "PlausibleConfig", "PlausibleSetError",
-           "PlausibleSets", "ProceduralMeshes", "cache_key", "cached_plausible_sets", "compute_plausible_sets",
+           "PlausibleSets", "ShapeMeshes", "cache_key", "cached_plausible_sets", "compute_plausible_sets",
            "dataset_fingerprint", "diameter", "diameter_bound_rejects", "icp_cloud", "plausible_shape_occupancy"]

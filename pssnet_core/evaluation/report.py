@@ -13,12 +13,21 @@ import numpy as np
 from pssnet_core.evaluation.evaluate import KeptExample
 from pssnet_core.evaluation.metrics import METRIC_NAMES
 
-#: (subset label, test set, extra row predicate), in the paper's column order
+
+def _hidden(row: dict[str, Any]) -> bool:
+    return row.get("handle_visible") in (False, 0, "False")
+
+
+#: (subset label, test set, extra row predicate), in the paper's column order, then the out-of-family sets'
 SUBSETS: tuple[tuple[str, str, Callable[[dict[str, Any]], bool] | None], ...] = (
     ("all mugs", "mugs", None),
-    ("occluded-handle mugs", "mugs", lambda r: r.get("handle_visible") in (False, 0, "False")),
+    ("occluded-handle mugs", "mugs", _hidden),
     ("ycb wide slit", "ycb_wide", None),
     ("ycb narrow slit", "ycb_narrow", None),
+    ("oof all mugs", "oof_mugs", None),
+    ("oof occluded-handle mugs", "oof_mugs", _hidden),
+    ("oof wide slit", "oof_wide", None),
+    ("oof narrow slit", "oof_narrow", None),
 )
 
 METRIC_LABELS = {"best_accuracy_mm": "best acc", "coverage_mm": "coverage",
@@ -29,10 +38,11 @@ ROTATION_KEYS: tuple[str, ...] = ("rotation_deg", "rotation", "yaw_deg", "yaw", 
 
 
 def summarise(rows: Sequence[dict[str, Any]], methods: Sequence[str], deltas: Sequence[float]) -> list[dict[str, Any]]:
-    """Mean metrics per (delta, subset, method): the long-format table."""
+    """Mean metrics per (delta, subset, method): the long-format table, for the subsets of the sets in ``rows``."""
+    present = {r["set"] for r in rows}
     table = []
     for delta in deltas:
-        for label, set_name, predicate in SUBSETS:
+        for label, set_name, predicate in [s for s in SUBSETS if s[1] in present]:
             for method in methods:
                 chosen = [r for r in rows if r["set"] == set_name and r["method"] == method
                           and abs(r["delta"] - delta) < 1e-12 and (predicate is None or predicate(r))]
@@ -54,12 +64,13 @@ def markdown_table(summary: Sequence[dict[str, Any]], methods: Sequence[str], de
     """Markdown: one table per delta, rows = methods, columns = subset x metric (mm), as the paper's Table 1."""
     lines: list[str] = []
     index = {(e["delta_m"], e["subset"], e["method"]): e for e in summary}
+    subsets = [s for s in SUBSETS if any(e["subset"] == s[0] for e in summary)]
     for delta in deltas:
         note = (delta_notes or {}).get(delta, "")
         lines.append(f"### delta = {delta * 100:g} cm{(' (' + note + ')') if note else ''}")
         lines.append("")
         header = ["method"]
-        for label, _, _ in SUBSETS:
+        for label, _, _ in subsets:
             counts = {index[(delta, label, m)]["count"] for m in methods if (delta, label, m) in index}
             n = max(counts) if counts else 0
             header += [f"{label} (n={n}): {METRIC_LABELS[name]}" for name in METRIC_NAMES]
@@ -67,12 +78,12 @@ def markdown_table(summary: Sequence[dict[str, Any]], methods: Sequence[str], de
         lines.append("|" + "---|" * len(header))
         for method in methods:
             cells = [method]
-            for label, _, _ in SUBSETS:
+            for label, _, _ in subsets:
                 e = index.get((delta, label, method))
                 cells += [_fmt(e[name]) if e else "n/a" for name in METRIC_NAMES]
             lines.append("| " + " | ".join(cells) + " |")
         sizes = []
-        for label, _, _ in SUBSETS:
+        for label, _, _ in subsets:
             e = index.get((delta, label, methods[0])) if methods else None
             if e and e["count"]:
                 sizes.append(f"{label}: {e['mean_plausible_set_size']:.1f}")
@@ -117,7 +128,9 @@ def plot_coverage_vs_rotation(path: str | Path, rows: Sequence[dict[str, Any]], 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    mug_rows = [r for r in rows if r["set"] == "mugs" and rotation_of(r) is not None]
+    from pssnet_core.evaluation.testsets import MUG_SETS
+
+    mug_rows = [r for r in rows if r["set"] in MUG_SETS and rotation_of(r) is not None]
     if not mug_rows:
         return None
     counts: dict[str, int] = {}

@@ -13,7 +13,21 @@ from pssnet_core.evaluation.plausible import EvalView, PlausibleSetError
 from pssnet_core.geometry import CameraIntrinsics, GridConfig, GridPose
 
 #: test-set names of the paper's experiments, as the data module names its test directories
-TEST_SETS: tuple[str, ...] = ("mugs", "ycb_narrow", "ycb_wide")
+PAPER_TEST_SETS: tuple[str, ...] = ("mugs", "ycb_narrow", "ycb_wide")
+#: the out-of-family test sets (objects of the independent generator and real modelled ones), the same experiments
+OOF_TEST_SETS: tuple[str, ...] = ("oof_mugs", "oof_narrow", "oof_wide")
+#: every test set the evaluation knows
+TEST_SETS: tuple[str, ...] = PAPER_TEST_SETS + OOF_TEST_SETS
+#: test sets of the mug experiment (yaw steps; hidden and visible handles)
+MUG_SETS: tuple[str, ...] = ("mugs", "oof_mugs")
+#: test sets behind the narrow slit (the hidden extent of boxes)
+NARROW_SETS: tuple[str, ...] = ("ycb_narrow", "oof_narrow")
+
+
+def build_command(name: str) -> str:
+    """The command that builds test set ``name``."""
+    family = "oof" if name in OOF_TEST_SETS else "mugs" if name in MUG_SETS else "ycb"
+    return f"pssnet dataset build --family {family} --split test"
 
 
 def camera_from_object(camera_pose: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
