@@ -106,13 +106,17 @@ def test_chamfer_mm():
     assert chamfer_mm(a, np.zeros((0, 3)), 0.005) == math.inf
 
 
-def test_precision_resolution():
-    from pssnet_core.models import cpu_has_fast_bf16
+@pytest.mark.parametrize("native_bf16", [False, True])
+def test_precision_resolution(monkeypatch, native_bf16):
+    import pssnet_core.models.base as models_base
 
+    monkeypatch.setattr(models_base, "cpu_has_fast_bf16", lambda: native_bf16)  # both CPU kinds on any machine
     assert resolve_context("cpu", "fp32").autocast_dtype is None
     assert resolve_context("cpu", "bf16").autocast_dtype == torch.bfloat16
-    auto = resolve_context("cpu", "auto").autocast_dtype
-    assert auto == (torch.bfloat16 if cpu_has_fast_bf16() else None)
+    assert resolve_context("cpu", "auto").autocast_dtype == (torch.bfloat16 if native_bf16 else None)
+    assert resolve_context("cpu", "auto").precision == ("bf16" if native_bf16 else "fp32")
+    with pytest.raises(TrainingError, match="precision must be one of"):
+        resolve_context("cpu", "fp16")
     if not torch.cuda.is_available():
         with pytest.raises(TrainingError, match="CUDA"):
             resolve_context("cuda", "auto")

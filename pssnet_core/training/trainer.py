@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from pssnet_core.data.store import GRID_KEYS, TRAINING_KEYS, DatasetReader
-from pssnet_core.models.base import CompletionModel, StepContext, fast_dtype
+from pssnet_core.models.base import PRECISIONS, CompletionModel, StepContext, resolve_precision
 from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
 from pssnet_core.models.config import ModelConfig, config_from_dict
 from pssnet_core.models.registry import default_config, get_model_class
@@ -113,7 +113,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
             raise TrainingError("epochs and batch_size must be >= 1 and lr > 0")
-        if self.precision not in ("auto", "fp32", "bf16"):
+        if self.precision not in PRECISIONS:
             raise TrainingError(f"precision must be auto, fp32 or bf16, got {self.precision!r}")
         if self.best_metric not in BEST_METRICS:
             raise TrainingError(f"best_metric must be one of {sorted(BEST_METRICS)}, got {self.best_metric!r}")
@@ -129,7 +129,7 @@ class TrainConfig:
 
 
 def resolve_context(device: str, precision: str) -> StepContext:
-    """Device + autocast dtype; bf16 requested on hardware without it is an error, "auto" falls back."""
+    """Device + autocast dtype (:func:`resolve_precision`); an unusable device or precision is a TrainingError."""
     try:
         dev = torch.device(device)
     except RuntimeError as error:
@@ -138,14 +138,10 @@ def resolve_context(device: str, precision: str) -> StepContext:
         raise TrainingError("--device cuda requested but torch sees no CUDA device")
     if dev.type not in ("cpu", "cuda"):
         raise TrainingError(f"device must be cpu or cuda, got {device!r}")
-    fast = fast_dtype(dev)
-    if precision == "fp32":
-        return StepContext(dev, None)
-    if precision == "bf16":
-        if dev.type == "cuda" and not torch.cuda.is_bf16_supported():
-            raise TrainingError("this GPU does not support bf16; use --precision fp32")
-        return StepContext(dev, torch.bfloat16)
-    return StepContext(dev, fast)
+    try:
+        return StepContext(dev, resolve_precision(dev, precision))
+    except ValueError as error:
+        raise TrainingError(str(error)) from error
 
 
 def batch_to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
