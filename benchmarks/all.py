@@ -1,6 +1,6 @@
 """Every speed target of the project in one run (`pssnet bench all`): measured value, target, ratio, met.
 
-    .venv/bin/python benchmarks/all.py [--quick] [--plausible-data DIR] [--json OUT]
+    .venv/bin/python benchmarks/all.py [--quick] [--precision auto|fp32|bf16] [--plausible-data DIR] [--json OUT]
 
 Runs the benchmark scripts next to this file, each in its own process (thread pools of one runtime slow the
 next one in the same process), and reads back the numbers each writes with ``--json``:
@@ -11,7 +11,10 @@ next one in the same process), and reads back the numbers each writes with ``--j
 - plausible_bench: plausible-set pairs per second (synthetic mugs unless ``--plausible-data``).
 
 Targets depend on the CPU kind (issue 12): fp32 on AVX2-only CPUs, bf16 where the CPU has AVX512-BF16 or AMX.
-The first lines say which kind this is. On a shared machine compare ratios, not milliseconds.
+The first lines say which kind this is; the network rows say which inference path ran (fused fp32, fused bf16,
+unfused). ``--precision`` forces the network rows' precision (default auto: bf16 where native), so that both
+paths can be timed on any CPU (bf16 on an AVX2-only CPU is emulated: slow); the service and topic rows run the
+node, at its own precision. On a shared machine compare ratios, not milliseconds.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from pssnet_core.models.base import cpu_has_fast_bf16
+from pssnet_core.models.base import PRECISIONS, cpu_has_fast_bf16
 from pssnet_ros.processes import cpu_kind
 
 HERE = Path(__file__).resolve().parent
@@ -66,14 +69,16 @@ def run_step(script: str, args: list[str], out: Path) -> dict:
     return json.loads(out.read_text())
 
 
-def measure(args: argparse.Namespace, tmp: Path) -> tuple[dict[str, float | str], dict[str, float]]:
-    """Target key -> measured value (a median), or the reason it could not be measured; and the best run
-    where the benchmark reports one (on a shared machine the closest to an idle one)."""
+def measure(args: argparse.Namespace, tmp: Path) -> tuple[dict[str, float | str], dict[str, float], dict[str, str]]:
+    """Target key -> measured value (a median), or the reason it could not be measured; the best run where the
+    benchmark reports one (on a shared machine the closest to an idle one); and the inference path of the
+    network rows."""
     repeats = "5" if args.quick else "15"
     values: dict[str, float | str] = {}
     best: dict[str, float] = {}
+    paths: dict[str, str] = {}
     steps = {
-        "inference": ("inference_bench", ["--grids", "32", "64", "--repeats", repeats,
+        "inference": ("inference_bench", ["--grids", "32", "64", "--repeats", repeats, "--precision", args.precision,
                                           "--checkpoint32", str(SHIPPED_MODEL)]),
         "grasps": ("grasp_bench", ["--sizes", "32", "--repeats", repeats]),
         "service": ("service_bench", ["--calls", "20" if args.quick else "100",
@@ -91,8 +96,9 @@ def measure(args: argparse.Namespace, tmp: Path) -> tuple[dict[str, float | str]
             continue
         if name == "inference":
             for grid in ("32", "64"):
-                values[f"network{grid}"] = numbers["grids"][grid]["fast_ms"]
-                best[f"network{grid}"] = numbers["grids"][grid]["fast_best_ms"]
+                values[f"network{grid}"] = numbers["grids"][grid]["ms"]
+                best[f"network{grid}"] = numbers["grids"][grid]["best_ms"]
+                paths[f"network{grid}"] = numbers["grids"][grid]["path"]
         elif name == "grasps":
             values["grasps"] = numbers["sizes"]["32"]["generate_ms"] + numbers["sizes"]["32"]["score_ms"]
         elif name == "service":
@@ -100,21 +106,23 @@ def measure(args: argparse.Namespace, tmp: Path) -> tuple[dict[str, float | str]
             values["topics"] = numbers["topics"]["output_hz"]
         else:
             values["plausible"] = numbers["pairs_per_second"]
-    return values, best
+    return values, best, paths
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats and calls (a few minutes)")
+    parser.add_argument("--precision", default="auto", choices=PRECISIONS,
+                        help="precision of the network rows (auto: bf16 where the CPU runs it natively, else fp32)")
     parser.add_argument("--plausible-data", default=None, help="a test dataset directory (default: synthetic mugs)")
     parser.add_argument("--json", type=Path, default=None, help="also write the table here")
     args = parser.parse_args()
-    # The same test the inference fast path uses to choose bf16, so the targets follow what actually runs.
+    # The same test precision "auto" uses to choose bf16: the targets follow the CPU kind, whatever --precision says.
     model, bf16 = cpu_kind(), cpu_has_fast_bf16()
-    kind = "bf16 targets" if bf16 else "fp32 targets"
+    kind = ("bf16 targets" if bf16 else "fp32 targets") + f", network rows at precision {args.precision}"
     print(f"[all] CPU: {model}: {kind}")
     with tempfile.TemporaryDirectory() as tmp:
-        values, best = measure(args, Path(tmp))
+        values, best, paths = measure(args, Path(tmp))
     rows, failures = [], 0
     print(f"\n[all] CPU: {model}: {kind}")
     print(f"{'what':<48} {'measured':>12} {'target':>12} {'ratio':>7}  met  (best run)")
@@ -130,14 +138,16 @@ def main() -> int:
         ratio = value / goal if target.at_most else goal / value if value > 0 else float("inf")
         sign = "<=" if target.at_most else ">="
         extra = f"  ({best[key]:.2f} {target.unit})" if key in best else ""
+        extra += f"  [{paths[key]}]" if key in paths else ""
         print(f"{target.what:<48} {value:>8.2f} {target.unit:<3} {sign}{goal:>7g} {target.unit:<3}"
               f"{ratio:>6.2f}x  {'yes' if ratio <= 1 else 'no '}{extra}")
-        rows.append({"what": target.what, "measured": value, "best": best.get(key), "target": goal,
-                     "unit": target.unit, "at_most": target.at_most, "ratio": ratio, "met": ratio <= 1})
+        rows.append({"what": target.what, "measured": value, "best": best.get(key), "path": paths.get(key),
+                     "target": goal, "unit": target.unit, "at_most": target.at_most, "ratio": ratio, "met": ratio <= 1})
     print("[all] measured: medians (grasps: CPU time); ratio: measured / target for times, target / measured for "
-          "rates (<= 1 is met); best run: the fastest of the repeats")
+          "rates (<= 1 is met); best run: the fastest of the repeats; [the inference path that ran]")
     if args.json:
-        args.json.write_text(json.dumps({"cpu": model, "bf16": bf16, "rows": rows}, indent=2))
+        args.json.write_text(json.dumps({"cpu": model, "bf16": bf16, "precision": args.precision, "rows": rows},
+                                        indent=2))
     return 1 if failures else 0
 
 

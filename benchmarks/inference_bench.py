@@ -1,14 +1,17 @@
-"""Inference latency: encoder once + decoder on N samples in one batch, fp32 eager vs the fast path.
+"""Inference latency: encoder once + decoder on N samples in one batch, at a precision against fp32.
 
     .venv/bin/python benchmarks/inference_bench.py [--grids 32 64] [--samples 20] [--repeats 15]
-        [--threads 2] [--device cpu|cuda] [--checkpoint32 PATH] [--checkpoint64 PATH]
+        [--threads 2] [--device cpu|cuda] [--precision auto|fp32|bf16] [--checkpoint32 PATH] [--checkpoint64 PATH]
     .venv/bin/python benchmarks/inference_bench.py --layers [--grids 32 64] [--samples 20]
     .venv/bin/python benchmarks/inference_bench.py --tail-chunks [--grids 32 64] [--repeats 15]
 
 Without a checkpoint the model is randomly initialised (same FLOPs, so the same latency); the numeric
-difference between fp32 and the fast path is only meaningful on trained weights, so pass checkpoints for it.
-Prints one row per grid: median ms fp32 eager, median ms fast path (channels_last_3d + bf16 autocast where
-native), speed-up, and max |p_fast - p_fp32| and the fraction of voxels whose occupancy (> 0.5) differs.
+difference between bf16 and fp32 is only meaningful on trained weights, so pass checkpoints for it.
+The first line names the CPU kind. Prints one row per grid: median ms in fp32, median ms at ``--precision``
+("auto" by default: bf16 where the CPU runs it natively, else fp32; "bf16" forces it, emulated and slow on
+AVX2-only CPUs), the path that ran (fused fp32 / fused bf16 / unfused), speed-up, and max |p - p_fp32| and the
+fraction of voxels whose occupancy (> 0.5) differs. The two are timed interleaved, call by call, so that a
+shared machine's load falls on both alike.
 
 ``--tail-chunks`` times the decoder with its later stages whole and in chunks of rows, interleaved (see
 ``Decoder3D.probabilities``). ``--layers`` instead times every kernel-2 stride-2 stage, channels_last_3d:
@@ -29,9 +32,10 @@ import numpy as np
 import torch
 
 from pssnet_core.inference import Completer
-from pssnet_core.models import build_model, default_config
+from pssnet_core.models import PRECISIONS, build_model, default_config
 from pssnet_core.models.checkpoint import load_checkpoint
 from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d
+from pssnet_ros.processes import cpu_kind
 
 
 def _observation(grid: int, seed: int = 0) -> np.ndarray:
@@ -44,21 +48,25 @@ def _observation(grid: int, seed: int = 0) -> np.ndarray:
     return x
 
 
-def _time(completer: Completer, x: np.ndarray, samples: int, repeats: int,
-          device: str) -> tuple[float, float, np.ndarray]:
-    """(median ms, best ms, probabilities) of ``repeats`` calls after a warm-up."""
-    for _ in range(3):  # warm-up (oneDNN primitive creation, allocator)
-        completer.complete(x, samples, seed=0)
-    times = []
+def _time_interleaved(completers: list[Completer], x: np.ndarray, samples: int, repeats: int,
+                      device: str) -> list[tuple[float, float, np.ndarray]]:
+    """(median ms, best ms, probabilities) of each completer over ``repeats`` calls after a warm-up, taking turns
+    call by call (on a shared machine only such numbers compare)."""
+    for completer in completers:
+        for _ in range(3):  # warm-up (weight packing, oneDNN primitive creation, allocator)
+            completer.complete(x, samples, seed=0)
+    times: list[list[float]] = [[] for _ in completers]
+    results = [completer.complete(x, samples, seed=0).probabilities for completer in completers]
     for _ in range(repeats):
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        result = completer.complete(x, samples, seed=0)
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        times.append((time.perf_counter() - t0) * 1000)
-    return statistics.median(times), min(times), result.probabilities
+        for completer, own in zip(completers, times, strict=True):
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            completer.complete(x, samples, seed=0)
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            own.append((time.perf_counter() - t0) * 1000)
+    return [(statistics.median(t), min(t), p) for t, p in zip(times, results, strict=True)]
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -137,6 +145,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--model", default="pssnet")
+    parser.add_argument("--precision", default="auto", choices=PRECISIONS,
+                        help="precision timed against fp32 (auto: bf16 where the CPU runs it natively, else fp32)")
     parser.add_argument("--checkpoint32", default=None)
     parser.add_argument("--checkpoint64", default=None)
     parser.add_argument("--layers", action="store_true",
@@ -156,9 +166,9 @@ def main() -> None:
         for grid in args.grids:
             layer_stages(grid, args.samples, args.repeats)
         return
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}, "
-          f"{args.samples} samples, median of {args.repeats}")
-    print(f"{'grid':>5} {'weights':>9} {'fp32 ms':>9} {'fast ms':>9} {'fast':>9} {'speed-up':>9} "
+    print(f"CPU: {cpu_kind()}; torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}, "
+          f"{args.samples} samples, median of {args.repeats}, precision {args.precision}")
+    print(f"{'grid':>5} {'weights':>9} {'fp32 ms':>9} {'ms':>9}  {'path':<28} {'speed-up':>9} "
           f"{'max|dp|':>9} {'occ diff':>9}")
     numbers: dict[str, dict[str, float | str]] = {}
     for grid in args.grids:
@@ -171,22 +181,22 @@ def main() -> None:
             config = default_config(args.model, grid_size=grid)
             model = build_model(config)
             weights = "random"
-        state = {k: v.clone() for k, v in model.state_dict().items()}
-        ref = Completer(model, config, device=args.device, fast=False)
-        fp32_ms, _, p_ref = _time(ref, _observation(grid), args.samples, args.repeats, args.device)
-        model2 = build_model(config)
-        model2.load_state_dict(state)
-        fast = Completer(model2, config, device=args.device, fast=True)
-        fast_ms, fast_best_ms, p_fast = _time(fast, _observation(grid), args.samples, args.repeats, args.device)
-        diff = np.abs(p_fast - p_ref)
-        occ = float(((p_fast > 0.5) != (p_ref > 0.5)).mean())
-        print(f"{grid:>5} {weights:>9} {fp32_ms:>9.1f} {fast_ms:>9.1f} {fast.precision:>9} "
-              f"{fp32_ms / fast_ms:>8.2f}x {diff.max():>9.4f} {occ:>9.5f}   (fast best {fast_best_ms:.1f} ms)")
-        numbers[str(grid)] = {"weights": weights, "fp32_ms": fp32_ms, "fast_ms": fast_ms, "fast_best_ms": fast_best_ms,
-                              "fast": fast.precision,
+        copy = build_model(config)
+        copy.load_state_dict(model.state_dict())
+        ref = Completer(model, config, device=args.device, precision="fp32")
+        timed = Completer(copy, config, device=args.device, precision=args.precision)
+        (fp32_ms, _, p_ref), (ms, best_ms, p) = _time_interleaved([ref, timed], _observation(grid), args.samples,
+                                                                 args.repeats, args.device)
+        diff = np.abs(p - p_ref)
+        occ = float(((p > 0.5) != (p_ref > 0.5)).mean())
+        print(f"{grid:>5} {weights:>9} {fp32_ms:>9.1f} {ms:>9.1f}  {timed.inference_path:<28} "
+              f"{fp32_ms / ms:>8.2f}x {diff.max():>9.4f} {occ:>9.5f}   (best {best_ms:.1f} ms)")
+        numbers[str(grid)] = {"weights": weights, "fp32_ms": fp32_ms, "ms": ms, "best_ms": best_ms,
+                              "precision": timed.precision, "path": timed.inference_path,
                               "max_prob_diff": float(diff.max()), "occupancy_differs": occ}
     if args.json:
-        args.json.write_text(json.dumps({"samples": args.samples, "threads": args.threads, "grids": numbers}, indent=2))
+        args.json.write_text(json.dumps({"cpu": cpu_kind(), "samples": args.samples, "threads": args.threads,
+                                         "grids": numbers}, indent=2))
 
 
 if __name__ == "__main__":

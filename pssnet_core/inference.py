@@ -5,10 +5,11 @@
     result.occupancy                                      # (20, N, N, N) bool
 
 The encoder runs once per call and the decoder once on all latents in one batch, under
-``torch.inference_mode``. The fast path (``fast=True``) uses channels_last_3d weights and, where the
-hardware runs bf16 natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), bf16 autocast; elsewhere fp32. In fp32 on
-the CPU (either setting) sampling runs fused oneDNN matmuls (``Decoder3D.probabilities``), equal to the
-plain layers up to fp32 rounding.
+``torch.inference_mode``, with channels_last_3d weights. ``precision`` ("auto", "fp32" or "bf16", the setting
+training, the benchmarks and the node share) chooses the number format: "auto" is bf16 where the hardware runs
+it natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), else fp32. On the CPU the VAE family's sampling runs fused
+matmuls on weights packed once (``Decoder3D.probabilities``): in fp32 equal to the plain layers up to fp32
+rounding, in bf16 the same occupancy in >= 99.5 % of voxels (``inference_path`` says which path runs).
 
 This module imports only torch/numpy (+ PyYAML via the configs): no open3d, cv2, trimesh or rclpy, so it
 also runs on the GPU training machine. Observations are taken by duck typing (``.network_input()``).
@@ -24,9 +25,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from pssnet_core.models.base import CompletionModel, ModelInputError, StepContext, check_box_temperature, fast_dtype
+from pssnet_core.models.base import (
+    CompletionModel,
+    ModelInputError,
+    StepContext,
+    check_box_temperature,
+    resolve_precision,
+)
 from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint
 from pssnet_core.models.config import ModelConfig
+from pssnet_core.models.networks import onednn_runs
 
 if TYPE_CHECKING:
     from pssnet_core.geometry import Observation
@@ -73,8 +81,8 @@ class Completer:
         config: its config.
         device: "cpu" or "cuda".
         threads: torch CPU threads to use (process-wide setting); None leaves torch's default.
-        fast: channels_last_3d + bf16 autocast where native; False = default layout in fp32 (the reference for
-            bf16; fp32 sampling on the CPU runs the fused oneDNN path either way).
+        precision: "auto" (bf16 where the hardware runs it natively, else fp32), "fp32" or "bf16" (honoured on
+            any CPU; emulated on AVX2-only ones, slow but numerically real). See :data:`PRECISIONS`.
         info: checkpoint metadata (``extra``), kept for callers.
         box_temperature: default factor on the posterior sigma of the box latent dims (PSSNet; 1.0 = the
             trained posterior); :meth:`complete` may override it per call. :meth:`from_checkpoint` takes the
@@ -82,7 +90,7 @@ class Completer:
     """
 
     def __init__(self, model: CompletionModel, config: ModelConfig, device: str | torch.device = "cpu",
-                 threads: int | None = None, fast: bool = True, info: dict[str, Any] | None = None,
+                 threads: int | None = None, precision: str = "auto", info: dict[str, Any] | None = None,
                  box_temperature: float = 1.0) -> None:
         self.device = torch.device(device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
@@ -91,21 +99,20 @@ class Completer:
             if threads < 1:
                 raise ValueError(f"threads must be >= 1, got {threads}")
             torch.set_num_threads(threads)
+        autocast_dtype = resolve_precision(self.device, precision)  # ValueError on a bad setting
         self.config = config
         self.info = dict(info or {})
-        self.fast = fast
-        self.model = model.to(self.device).eval()
+        # channels_last_3d: the fast conv layout (oneDNN, cuDNN) and a free first permute of the block layers.
+        self.model = model.to(self.device).eval().to_fast_layout()
         try:
             self.box_temperature = check_box_temperature(box_temperature, getattr(model, "box_dim", 0) > 0)
         except ModelInputError as error:
             raise ValueError(str(error)) from error
-        if fast:
-            self.model.to_fast_layout()
-        self.ctx = StepContext(self.device, fast_dtype(self.device) if fast else None)
+        self.ctx = StepContext(self.device, autocast_dtype)
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str | torch.device = "cpu",
-                        threads: int | None = None, fast: bool = True,
+                        threads: int | None = None, precision: str = "auto",
                         box_temperature: float | None = None) -> Completer:
         """Loads a checkpoint (``weights_only``); ``path`` None loads the shipped default 32^3 PSSNet.
 
@@ -123,7 +130,7 @@ class Completer:
         extra["path"] = str(path)
         if box_temperature is None:  # the temperature calibrated with the model, else the trained posterior
             box_temperature = float(extra.get("box_temperature", 1.0))
-        return cls(model, config, device=device, threads=threads, fast=fast, info=extra,
+        return cls(model, config, device=device, threads=threads, precision=precision, info=extra,
                    box_temperature=box_temperature)
 
     @property
@@ -136,8 +143,18 @@ class Completer:
 
     @property
     def precision(self) -> str:
-        """"bfloat16" or "fp32": what the network actually runs in."""
+        """"fp32" or "bf16": what the network actually runs in ("auto" resolved)."""
         return self.ctx.precision
+
+    @property
+    def inference_path(self) -> str:
+        """Which network path :meth:`complete` runs: "fused fp32" or "fused bf16" (fused oneDNN matmuls on weights
+        packed once; "fused bf16 (torch.addmm)" where this CPU's oneDNN has no bf16 linear and torch emulates
+        it), or "unfused" (torch's layers, under autocast in bf16: other models, other devices)."""
+        if self.device.type != "cpu" or not torch.backends.mkldnn.is_available() or not self.model.fuses_sampling:
+            return "unfused"
+        path = f"fused {self.precision}"
+        return path if onednn_runs(self.ctx.autocast_dtype or torch.float32) else path + " (torch.addmm)"
 
     def _network_input(self, observation: Observation | np.ndarray | torch.Tensor) -> torch.Tensor:
         if hasattr(observation, "network_input"):

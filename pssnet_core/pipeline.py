@@ -222,11 +222,14 @@ class CompletionPipeline:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path | None, config: PipelineConfig | None = None,
-                        device: str = "cpu", threads: int | None = None) -> CompletionPipeline:
-        """Loads a checkpoint (None = the shipped default); raises ``CheckpointError`` with the reason."""
+                        device: str = "cpu", threads: int | None = None,
+                        precision: str = "auto") -> CompletionPipeline:
+        """Loads a checkpoint (None = the shipped default) for ``Completer`` with ``device``, ``threads`` and
+        ``precision`` ("auto", "fp32" or "bf16"); raises ``CheckpointError`` with the reason (a ValueError, as
+        is a bad device or precision)."""
         from pssnet_core.inference import Completer
 
-        return cls(Completer.from_checkpoint(path, device=device, threads=threads), config)
+        return cls(Completer.from_checkpoint(path, device=device, threads=threads, precision=precision), config)
 
     @property
     def grid_size(self) -> int:

@@ -88,6 +88,15 @@ def test_real_model_seeds_and_sample_counts(tiny_pipeline, scene):
     tiny_pipeline.config = tiny_pipeline.with_config(seed=0, sampler=PipelineConfig().sampler)
 
 
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_the_precision_setting_reaches_the_completer(tmp_path, precision):
+    path = tiny_checkpoint(tmp_path / "tiny.pt")
+    pipeline = CompletionPipeline.from_checkpoint(path, threads=1, precision=precision)
+    assert pipeline.completer.precision == precision
+    with pytest.raises(ValueError, match="precision must be one of"):
+        CompletionPipeline.from_checkpoint(path, threads=1, precision="fast")
+
+
 def bad_inputs(scene):
     depth, mask, intr = scene.depth, scene.mask, scene.intrinsics
     tiny_mask = np.zeros_like(mask)

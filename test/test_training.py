@@ -8,7 +8,9 @@ import math
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from test_models_helpers import TINY_BY_MODEL, make_dataset, tiny_model
 from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, load_checkpoint, save_checkpoint
 from pssnet_core.training import TrainConfig, Trainer, TrainingError, chamfer_mm
 from pssnet_core.training.cli import register
-from pssnet_core.training.trainer import resolve_context
+from pssnet_core.training.trainer import prefetch, resolve_context
 
 GRID = 16
 
@@ -106,13 +108,47 @@ def test_chamfer_mm():
     assert chamfer_mm(a, np.zeros((0, 3)), 0.005) == math.inf
 
 
-def test_precision_resolution():
-    from pssnet_core.models import cpu_has_fast_bf16
+def test_closing_prefetch_waits_for_its_thread():
+    """A consumer that stops early (the last step of a run) leaves no producer thread behind: one still inside
+    torch code at interpreter exit aborts the process (the two-rank test's rank 1, issue 24)."""
 
+    def slow(made: list[int]) -> Iterator[int]:
+        for i in range(100):
+            time.sleep(0.05)  # the next batch is being made when the consumer stops
+            made.append(i)
+            yield i
+
+    def broken() -> Iterator[int]:
+        yield 1
+        raise ValueError("broken shard")
+
+    def producers() -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name == "prefetch"]
+
+    for stop_after in (0, 1, 3):
+        made: list[int] = []
+        stream = prefetch(slow(made))
+        assert [next(stream) for _ in range(stop_after)] == list(range(stop_after))
+        stream.close()
+        assert not producers()
+        assert len(made) <= stop_after + 3  # at most 2 queued and the one being made when it stopped
+    with pytest.raises(ValueError, match="broken shard"):
+        list(prefetch(broken()))
+    assert list(prefetch(iter(range(5)))) == list(range(5))
+    assert not producers()
+
+
+@pytest.mark.parametrize("native_bf16", [False, True])
+def test_precision_resolution(monkeypatch, native_bf16):
+    import pssnet_core.models.base as models_base
+
+    monkeypatch.setattr(models_base, "cpu_has_fast_bf16", lambda: native_bf16)  # both CPU kinds on any machine
     assert resolve_context("cpu", "fp32").autocast_dtype is None
     assert resolve_context("cpu", "bf16").autocast_dtype == torch.bfloat16
-    auto = resolve_context("cpu", "auto").autocast_dtype
-    assert auto == (torch.bfloat16 if cpu_has_fast_bf16() else None)
+    assert resolve_context("cpu", "auto").autocast_dtype == (torch.bfloat16 if native_bf16 else None)
+    assert resolve_context("cpu", "auto").precision == ("bf16" if native_bf16 else "fp32")
+    with pytest.raises(TrainingError, match="precision must be one of"):
+        resolve_context("cpu", "fp16")
     if not torch.cuda.is_available():
         with pytest.raises(TrainingError, match="CUDA"):
             resolve_context("cuda", "auto")

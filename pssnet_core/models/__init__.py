@@ -5,11 +5,12 @@ inference run on machines without them.
 """
 
 from pssnet_core.models.base import (
+    PRECISIONS,
     CompletionModel,
     ModelInputError,
     StepContext,
     cpu_has_fast_bf16,
-    fast_dtype,
+    resolve_precision,
 )
 from pssnet_core.models.checkpoint import (
     CheckpointError,
@@ -31,9 +32,9 @@ from pssnet_core.models.config import (
 from pssnet_core.models.registry import build_model, default_config, get_model_class, model_names
 
 __all__ = [
-    "CheckpointError", "CompletionModel", "ConfigError", "ModelConfig", "ModelInputError", "PSSNetConfig",
+    "PRECISIONS", "CheckpointError", "CompletionModel", "ConfigError", "ModelConfig", "ModelInputError", "PSSNetConfig",
     "RecGANConfig",
     "StepContext", "VAEConfig", "VAEGANConfig", "build_model", "config_from_dict", "config_from_yaml",
-    "cpu_has_fast_bf16", "default_config", "export_checkpoint", "fast_dtype", "get_model_class", "load_checkpoint",
-    "model_names", "read_checkpoint", "save_checkpoint",
+    "cpu_has_fast_bf16", "default_config", "export_checkpoint", "get_model_class", "load_checkpoint",
+    "model_names", "read_checkpoint", "resolve_precision", "save_checkpoint",
 ]

@@ -38,7 +38,7 @@ class ModelInputError(ValueError):
 def cpu_has_fast_bf16() -> bool:
     """True when this CPU has native bf16 matrix instructions (AVX512-BF16 or AMX-BF16).
 
-    Without them oneDNN emulates bf16 and it is slower than fp32, so the fast path falls back to fp32.
+    Without them oneDNN emulates bf16 and it is slower than fp32, so precision "auto" falls back to fp32.
     Read from /proc/cpuinfo (Linux); anywhere else we assume no.
     """
     try:
@@ -53,14 +53,32 @@ def cpu_has_fast_bf16() -> bool:
     return bool({"avx512_bf16", "amx_bf16"} & flags)
 
 
-def fast_dtype(device: torch.device | str) -> torch.dtype | None:
-    """The autocast dtype of the fast path on ``device``: bf16 where the hardware runs it natively, else None."""
+#: The precision settings that inference, training, the benchmarks and the node share: "fp32", "bf16", or
+#: "auto" = bf16 where the hardware runs it natively (AVX512-BF16 / AMX CPUs, bf16 GPUs), else fp32.
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+def resolve_precision(device: torch.device | str, precision: str = "auto") -> torch.dtype | None:
+    """The autocast dtype of ``precision`` on ``device``: ``torch.bfloat16``, or None for plain fp32.
+
+    "bf16" is honoured on any CPU (where it is emulated it is slow but numerically real: how an AVX2 machine
+    tests the bf16 path); only a GPU without bf16 refuses it.
+
+    Raises:
+        ValueError: ``precision`` is not one of :data:`PRECISIONS`, or "bf16" on a GPU without bf16.
+    """
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     device = torch.device(device)
+    if precision == "fp32":
+        return None
     if device.type == "cuda":
+        if precision == "bf16" and not torch.cuda.is_bf16_supported():
+            raise ValueError("this GPU does not support bf16; use precision fp32")
         return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
-    if device.type == "cpu":
-        return torch.bfloat16 if cpu_has_fast_bf16() else None
-    return None
+    if precision == "bf16":
+        return torch.bfloat16
+    return torch.bfloat16 if device.type == "cpu" and cpu_has_fast_bf16() else None
 
 
 @dataclass(frozen=True)
@@ -78,7 +96,8 @@ class StepContext:
 
     @property
     def precision(self) -> str:
-        return "fp32" if self.autocast_dtype is None else str(self.autocast_dtype).replace("torch.", "")
+        """The precision setting this context runs: "fp32" or "bf16" (see :data:`PRECISIONS`)."""
+        return {None: "fp32", torch.bfloat16: "bf16"}.get(self.autocast_dtype, str(self.autocast_dtype))
 
 
 def fp32_region(device: torch.device) -> contextlib.AbstractContextManager:
@@ -92,6 +111,8 @@ class CompletionModel(nn.Module):
     name: ClassVar[str] = ""
     #: parameter-name prefixes used only for training; an inference export may drop them.
     training_only_prefixes: ClassVar[tuple[str, ...]] = ()
+    #: whether :meth:`sample` runs the fused CPU inference path of :mod:`pssnet_core.models.networks`.
+    fuses_sampling: ClassVar[bool] = False
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()

@@ -126,46 +126,82 @@ def grid_order(side: int, stages: int) -> torch.Tensor:
 # linear_pointwise op, the one torch.compile's CPU backend emits) on weights pre-packed once. Why: with
 # addmm + ReLU, torch broadcasts the bias into the whole output before the GEMM and makes a second pass for
 # the ReLU, and each such pass over the 21 MB 128 -> 64 output is a parallel region that, on a busy 2-core
-# machine, waits for the slower thread (BENCHMARKS.md, "Inference").
+# machine, waits for the slower thread (BENCHMARKS.md, "Inference"). The same path runs in bf16 (weights packed
+# once in bf16, bf16 activations between stages) under CPU bf16 autocast: the autocast layers cast the weights and
+# permute blocks on every call, and on AMX CPUs those copies took more time than the matmuls (issue 24).
 
 
 # Largest intermediate of one chunk of the decoder's later stages (see Decoder3D.probabilities): a few MB, about
 # the share of this CPU's 32 MB L3 cache one stage's output can have while its input and weights are there too.
 _TAIL_CHUNK_BYTES = 4 << 20
 
+# In-place activations of the torch.addmm form of PackedLinear, by oneDNN post-op name.
+_ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {"none": lambda y: y, "relu": torch.relu_}
+
 
 class PackedLinear(NamedTuple):
-    """y = activation(x @ weight.T + bias), weight in oneDNN's packed layout."""
+    """y = activation(x @ weight.T + bias) on a weight packed once (see :func:`pack_linear`).
+
+    ``onednn``: ``weight`` is in oneDNN's packed layout and one fused oneDNN matmul computes y; otherwise
+    ``weight`` is the (K, N) transposed weight for torch.addmm and the activation is a second, in-place pass.
+    """
 
     weight: torch.Tensor
     bias: torch.Tensor | None
+    onednn: bool
 
     def __call__(self, x: torch.Tensor, activation: str = "none") -> torch.Tensor:
-        return torch.ops.mkldnn._linear_pointwise(x, self.weight, self.bias, activation, [], "")
+        if self.onednn:
+            return torch.ops.mkldnn._linear_pointwise(x, self.weight, self.bias, activation, [], "")
+        y = torch.addmm(self.bias, x, self.weight) if self.bias is not None else x @ self.weight
+        return _ACTIVATIONS[activation](y)
 
 
-def fused_inference_applies(x: torch.Tensor) -> bool:
-    """Whether the fused oneDNN path may run: no autograd, fp32 CPU tensors, no autocast, oneDNN built in, not
-    being traced (an ONNX export wants the plain GEMMs)."""
-    return (not torch.is_grad_enabled() and x.device.type == "cpu" and x.dtype == torch.float32
-            and torch.backends.mkldnn.is_available() and not torch.is_autocast_enabled("cpu")
-            and not torch.jit.is_tracing())
+def onednn_runs(dtype: torch.dtype) -> bool:
+    """Whether oneDNN's linear runs ``dtype`` on this CPU: fp32 always; bf16 where it has AVX-512 (BW, VL, DQ) or
+    AVX-NE-CONVERT, natively with AVX512-BF16 / AMX. On an AVX2-only CPU oneDNN has no bf16 linear at all."""
+    return dtype == torch.float32 or bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
-_PACKED: weakref.WeakKeyDictionary[nn.Module, tuple[tuple[tuple[int, int], ...], list[PackedLinear]]] = \
-    weakref.WeakKeyDictionary()
+def pack_linear(weight: torch.Tensor, bias: torch.Tensor | None, dtype: torch.dtype) -> PackedLinear:
+    """An (N, K) weight and its bias as a :class:`PackedLinear` in ``dtype``: oneDNN's packed layout where oneDNN
+    runs ``dtype``, else a bf16 weight for torch.addmm (bf16 emulated on an AVX2 CPU: slow but the same numbers,
+    so the bf16 path can be tested there)."""
+    w = weight.detach().to(dtype).contiguous()
+    b = None if bias is None else bias.detach().to(dtype).contiguous()
+    if onednn_runs(dtype):
+        return PackedLinear(torch.ops.mkldnn._reorder_linear_weight(w), b, True)
+    return PackedLinear(w.t(), b, False)
 
 
-def packed_linears(module: nn.Module, weights: Callable[[], list[tuple[torch.Tensor, torch.Tensor | None]]]
-                   ) -> list[PackedLinear]:
-    """The ((N, K) weight, bias) pairs that ``weights()`` gives, packed for oneDNN; cached per module until any
-    of its parameters changes (storage or in-place version: optimizer steps, load_state_dict, .to())."""
+def fused_dtype(x: torch.Tensor) -> torch.dtype | None:
+    """The dtype the fused inference path runs in for input ``x``, or None where it may not run.
+
+    It runs without autograd on fp32 CPU tensors with oneDNN built in, when not traced (an ONNX export wants the
+    plain GEMMs): in float32 outside autocast, in bfloat16 under CPU bf16 autocast (how ``Completer`` asks for
+    bf16); under any other autocast it does not run.
+    """
+    if (torch.is_grad_enabled() or x.device.type != "cpu" or x.dtype != torch.float32
+            or not torch.backends.mkldnn.is_available() or torch.jit.is_tracing()):
+        return None
+    if not torch.is_autocast_enabled("cpu"):
+        return torch.float32
+    return torch.bfloat16 if torch.get_autocast_dtype("cpu") == torch.bfloat16 else None
+
+
+_PackCache = dict[torch.dtype, tuple[tuple[tuple[int, int], ...], list[PackedLinear]]]
+_PACKED: weakref.WeakKeyDictionary[nn.Module, _PackCache] = weakref.WeakKeyDictionary()
+
+
+def packed_linears(module: nn.Module, weights: Callable[[], list[tuple[torch.Tensor, torch.Tensor | None]]],
+                   dtype: torch.dtype) -> list[PackedLinear]:
+    """The ((N, K) weight, bias) pairs that ``weights()`` gives, packed in ``dtype``; cached per module and dtype
+    until any of its parameters changes (storage or in-place version: optimizer steps, load_state_dict, .to())."""
     key = tuple((p.data_ptr(), p._version) for p in module.parameters())
-    cached = _PACKED.get(module)
+    per_dtype = _PACKED.setdefault(module, {})
+    cached = per_dtype.get(dtype)
     if cached is None or cached[0] != key:
-        packed = [PackedLinear(torch.ops.mkldnn._reorder_linear_weight(w.detach().contiguous()),
-                               None if b is None else b.detach().contiguous()) for w, b in weights()]
-        cached = _PACKED[module] = (key, packed)
+        cached = per_dtype[dtype] = (key, [pack_linear(w, b, dtype) for w, b in weights()])
     return cached[1]
 
 
@@ -209,12 +245,14 @@ class Encoder3D(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         convs = [m for m in self.conv if not isinstance(m, nn.ReLU)]
-        if fused_inference_applies(x) and all(isinstance(m, BlockConv3d) for m in convs):
-            return self._fused_forward(x, convs)
+        dtype = fused_dtype(x)
+        if dtype is not None and all(isinstance(m, BlockConv3d) for m in convs):
+            return self._fused_forward(x, convs, dtype)
         return self.dense(self.conv(x).flatten(1))
 
-    def _fused_forward(self, x: torch.Tensor, convs: list[BlockConv3d]) -> torch.Tensor:
-        """The same function without autograd: each stage one fused oneDNN matmul (+ bias + ReLU)."""
+    def _fused_forward(self, x: torch.Tensor, convs: list[BlockConv3d], dtype: torch.dtype) -> torch.Tensor:
+        """The same function without autograd: each stage one fused matmul (+ bias + ReLU) in ``dtype``; the
+        output is in ``dtype`` too (as autocast's dense layer gives it)."""
 
         def weights() -> list[tuple[torch.Tensor, torch.Tensor | None]]:
             # The dense layer reads the last grid voxel-major ([voxel, C]), as the stages emit it.
@@ -222,7 +260,8 @@ class Encoder3D(nn.Module):
             return ([(m.row_weight(), m.bias) for m in convs]
                     + [(dense.transpose(1, 2).reshape(self.dense.out_features, -1), self.dense.bias)])
 
-        *stages, dense = packed_linears(self, weights)
+        *stages, dense = packed_linears(self, weights, dtype)
+        x = x.to(dtype)
         for conv, stage in zip(convs, stages, strict=True):
             x = conv.to_grid(stage(conv.blocks(x), "relu"), x)
         return dense(x.permute(0, 2, 3, 4, 1).reshape(x.shape[0], -1))
@@ -262,11 +301,13 @@ class Decoder3D(nn.Module):
         return blocks_to_grid(rows, h.shape[0], side, stages)
 
     def probabilities(self, z: torch.Tensor) -> torch.Tensor:
-        """sigmoid(self(z)), (B, 1, N, N, N). Without autograd on the CPU in fp32 (``sample``'s case): each
-        stage one fused oneDNN matmul (+ bias + ReLU, the last + sigmoid) in block order, the stages after the
-        first on chunks of rows, and one gather into spatial order."""
+        """sigmoid(self(z)), (B, 1, N, N, N) float32. Where the fused path runs (``sample``'s case on the CPU, see
+        :func:`fused_dtype`): each stage one fused matmul (+ bias + ReLU) in fp32 or bf16, in block order, the
+        stages after the first on chunks of rows; the sigmoid of the last stage's logits in fp32; one gather into
+        spatial order."""
         layers = [m for m in self.deconv if not isinstance(m, nn.ReLU)]
-        if not (fused_inference_applies(z) and all(isinstance(m, BlockDeconv3d) for m in layers)):
+        dtype = fused_dtype(z)
+        if dtype is None or not all(isinstance(m, BlockDeconv3d) for m in layers):
             return torch.sigmoid(self(z).float())
 
         def weights() -> list[tuple[torch.Tensor, torch.Tensor | None]]:
@@ -277,8 +318,8 @@ class Decoder3D(nn.Module):
             bias = self.dense.bias.view(self.top, voxels).t().reshape(-1)
             return [(dense, bias)] + [(m.row_weight(), None if m.bias is None else m.bias.repeat(8)) for m in layers]
 
-        dense, *stages = packed_linears(self, weights)
-        rows = dense(z, "relu").view(-1, self.top)
+        dense, *stages = packed_linears(self, weights, dtype)
+        rows = dense(z.to(dtype), "relu").view(-1, self.top)
         # The first stage runs whole; the later ones chunk by chunk of its output rows (each row's outputs stay
         # consecutive in block order), so that a chunk's intermediates stay in cache where the whole ones would
         # go through memory (at 64^3 the 128 -> 64 output is 168 MB): 64^3 263 -> 200 ms, 32^3 the same
@@ -291,12 +332,15 @@ class Decoder3D(nn.Module):
                      default=1)
         chunk = max(1, _TAIL_CHUNK_BYTES // widest)
         grow = 8 ** len(tail)
-        probs = torch.empty(rows.shape[0] * grow, dtype=rows.dtype)  # one channel: (B * N^3) in block order
+        probs = torch.empty(rows.shape[0] * grow)  # one channel, float32: (B * N^3) in block order
         for start in range(0, rows.shape[0], chunk):
             part = rows[start:start + chunk]
             for layer, stage in zip(tail[:-1], tail_stages[:-1], strict=True):
                 part = stage(part, "relu").view(-1, layer.out_channels)
-            probs[start * grow:start * grow + part.shape[0] * 8] = tail_stages[-1](part, "sigmoid").view(-1)
+            # Sigmoid in fp32 on the logits: a bf16 probability (8-bit mantissa) would round p = 0.5 + 1e-3 to 0.5,
+            # where the logit's sign, and so the occupancy, is still exact.
+            logits = tail_stages[-1](part).view(-1).float()
+            torch.sigmoid(logits, out=probs[start * grow:start * grow + logits.shape[0]])
         probs = probs.view(z.shape[0], -1)
         n = self.side * 2 ** len(layers)
         # A gather instead of blocks_to_grid's 3 * (stages + 1) + 2-dimensional permuted copy, which torch

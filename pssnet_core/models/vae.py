@@ -59,6 +59,7 @@ class VAE(CompletionModel):
     """Encoder (stride-2 convs, dense to mean and log-variance) and mirrored decoder."""
 
     name = "vae"
+    fuses_sampling = True  # Encoder3D and Decoder3D.probabilities
 
     def __init__(self, config: VAEConfig) -> None:
         super().__init__(config)

@@ -26,7 +26,7 @@ import torch
 
 from pssnet_core.data.store import DatasetReader
 from pssnet_core.models import build_model
-from pssnet_core.models.base import fast_dtype
+from pssnet_core.models.base import resolve_precision
 from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from pssnet_core.models.vae import PSSNet
 
@@ -76,7 +76,7 @@ class BoxHeadFitConfig:
 def encoder_pairs(model: PSSNet, data: str, max_views: int | None, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(features (V, 2 x latent_dim), true box codes (V, box_dim)) of training views, frozen model."""
     reader = DatasetReader(data)
-    dtype = fast_dtype(model.device)
+    dtype = resolve_precision(model.device)
     features, codes, seen = [], [], 0
     for batch in reader.iter_batches(128, shuffle=True, seed=seed, keys=("known_occupied", "known_free", "box")):
         x = torch.from_numpy(np.stack([batch["known_occupied"], batch["known_free"]], 1).astype(np.float32))

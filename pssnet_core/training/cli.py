@@ -7,6 +7,7 @@ import signal
 import sys
 
 from pssnet_core.data.store import DatasetError, DatasetReader
+from pssnet_core.models.base import PRECISIONS
 from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, read_checkpoint
 from pssnet_core.models.config import ConfigError
 from pssnet_core.models.registry import model_names
@@ -37,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="main Adam learning rate (paper: 1e-3), for the mean loss of the whole step's batch; not "
                         "scaled with the number of ranks")
     p.add_argument("--device", default="cpu", help="cpu or cuda (under torchrun each rank takes cuda:LOCAL_RANK)")
-    p.add_argument("--precision", default="auto", choices=["auto", "fp32", "bf16"],
+    p.add_argument("--precision", default="auto", choices=PRECISIONS,
                    help="auto: bf16 autocast where the hardware has native bf16 (AVX512-BF16/AMX, CUDA), else fp32")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--seed", type=int, default=0)

@@ -15,13 +15,14 @@ Output directory::
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from pssnet_core.data.store import GRID_KEYS, TRAINING_KEYS, DatasetReader
-from pssnet_core.models.base import CompletionModel, StepContext, fast_dtype
+from pssnet_core.models.base import PRECISIONS, CompletionModel, StepContext, resolve_precision
 from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
 from pssnet_core.models.config import ModelConfig, config_from_dict
 from pssnet_core.models.registry import default_config, get_model_class
@@ -113,7 +114,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
             raise TrainingError("epochs and batch_size must be >= 1 and lr > 0")
-        if self.precision not in ("auto", "fp32", "bf16"):
+        if self.precision not in PRECISIONS:
             raise TrainingError(f"precision must be auto, fp32 or bf16, got {self.precision!r}")
         if self.best_metric not in BEST_METRICS:
             raise TrainingError(f"best_metric must be one of {sorted(BEST_METRICS)}, got {self.best_metric!r}")
@@ -129,7 +130,7 @@ class TrainConfig:
 
 
 def resolve_context(device: str, precision: str) -> StepContext:
-    """Device + autocast dtype; bf16 requested on hardware without it is an error, "auto" falls back."""
+    """Device + autocast dtype (:func:`resolve_precision`); an unusable device or precision is a TrainingError."""
     try:
         dev = torch.device(device)
     except RuntimeError as error:
@@ -138,14 +139,10 @@ def resolve_context(device: str, precision: str) -> StepContext:
         raise TrainingError("--device cuda requested but torch sees no CUDA device")
     if dev.type not in ("cpu", "cuda"):
         raise TrainingError(f"device must be cpu or cuda, got {device!r}")
-    fast = fast_dtype(dev)
-    if precision == "fp32":
-        return StepContext(dev, None)
-    if precision == "bf16":
-        if dev.type == "cuda" and not torch.cuda.is_bf16_supported():
-            raise TrainingError("this GPU does not support bf16; use --precision fp32")
-        return StepContext(dev, torch.bfloat16)
-    return StepContext(dev, fast)
+    try:
+        return StepContext(dev, resolve_precision(dev, precision))
+    except ValueError as error:
+        raise TrainingError(str(error)) from error
 
 
 def batch_to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
@@ -160,28 +157,39 @@ def batch_to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     return out
 
 
-def prefetch(iterator: Iterator[Any], depth: int = 2) -> Iterator[Any]:
-    """Runs ``iterator`` in a background thread (shard decoding overlaps compute); re-raises its errors."""
+def prefetch(iterator: Iterator[Any], depth: int = 2) -> Generator[Any, None, None]:
+    """Runs ``iterator`` in a background thread (shard decoding overlaps compute); re-raises its errors.
+
+    Closing the generator (``contextlib.closing``, or its last reference dropped) stops the thread and waits for
+    it. Why wait: a daemon thread still inside torch code (``torch.from_numpy`` of the next batch) when the
+    interpreter exits is unwound through C++ frames that must not unwind, and the process aborts ("terminate
+    called without an active exception"): rank 1 of a distributed run, which leaves right after its last step,
+    did that now and then (issue 24).
+    """
     items: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
     done = object()
 
+    def offer(item: Any) -> bool:
+        """Queues ``item`` unless the consumer has stopped (then False): the thread never blocks for good."""
+        while not stop.is_set():
+            try:
+                items.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
     def work() -> None:
         try:
             for item in iterator:
-                while not stop.is_set():
-                    try:
-                        items.put(item, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
+                if not offer(item):
                     return
-            items.put(done)
+            offer(done)
         except BaseException as error:  # handed to the consumer
-            items.put(error)
+            offer(error)
 
-    thread = threading.Thread(target=work, daemon=True)
+    thread = threading.Thread(target=work, name="prefetch", daemon=True)
     thread.start()
     try:
         while True:
@@ -193,6 +201,7 @@ def prefetch(iterator: Iterator[Any], depth: int = 2) -> Iterator[Any]:
             yield item
     finally:
         stop.set()
+        thread.join()  # at most the time of the item being made
 
 
 def chamfer_mm(a: np.ndarray, b: np.ndarray, voxel_size: float) -> float:
@@ -480,52 +489,53 @@ class Trainer:
                 epoch = state["epoch"]
                 # Where a resumed epoch continues: exact with the same ranks and batch; else at the same fraction.
                 done = state["samples_in_epoch"] // global_batch
-                stream = prefetch(map(batch_to_tensors, self._batches(run, cfg.batch_size, cfg.seed + epoch,
-                                                                      drop_last, TRAINING_KEYS)))
-                bar = tqdm(total=steps_per_epoch, initial=done, desc=f"epoch {epoch}",
-                           disable=not (cfg.progress and main), dynamic_ncols=True, leave=False)
-                sums: dict[str, float] = {}
-                n_logged, t_log = 0, time.perf_counter()
-                for _ in range(done):
-                    next(stream, None)
-                batch = next(stream, None)
-                (epoch_over,) = run.any(batch is None)
-                while not epoch_over:
-                    losses = model.training_step(batch, optimizers, ctx)
-                    run.average_buffers(model)
+                # Closed on every way out of the epoch (its end, a stop, an exception): see prefetch.
+                with contextlib.closing(prefetch(map(batch_to_tensors, self._batches(
+                        run, cfg.batch_size, cfg.seed + epoch, drop_last, TRAINING_KEYS)))) as stream:
+                    bar = tqdm(total=steps_per_epoch, initial=done, desc=f"epoch {epoch}",
+                               disable=not (cfg.progress and main), dynamic_ncols=True, leave=False)
+                    sums: dict[str, float] = {}
+                    n_logged, t_log = 0, time.perf_counter()
+                    for _ in range(done):
+                        next(stream, None)
                     batch = next(stream, None)
-                    # One agreement per step: every rank leaves the loop after the same step.
-                    non_finite, signalled, time_up, epoch_over = run.any(
-                        not all(math.isfinite(v) for v in losses.values()), stop is not None and stop.is_set(),
-                        time.perf_counter() - invocation_start > budget_s, batch is None)
-                    if non_finite:
-                        raise TrainingError(f"non-finite loss at step {state['step']}: {losses}"
-                                            f"{' (on some rank)' if run.enabled else ''}; lower --lr or use "
-                                            f"--precision fp32")
-                    done += 1
-                    state.update(step=state["step"] + 1, batch_in_epoch=done, samples_in_epoch=done * global_batch)
-                    if signalled:
-                        raise KeyboardInterrupt
-                    for k, v in losses.items():
-                        sums[k] = sums.get(k, 0.0) + v
-                    n_logged += 1
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{losses['loss']:.1f}", rec=f"{losses['rec']:.1f}")
-                    if state["step"] % cfg.log_every == 0:
-                        now = time.perf_counter()
-                        means = run.mean({k: v / n_logged for k, v in sums.items()})
-                        if main:
-                            train_log.write({"step": state["step"], "epoch": epoch, "elapsed_s": elapsed(),
-                                             "samples_per_s": n_logged * global_batch / (now - t_log), **means})
-                        sums, n_logged, t_log = {}, 0, now
-                    if cfg.val_every and state["step"] % cfg.val_every == 0:
-                        last_val = run_validation()
-                    if time_up:
-                        stopped_by = "max_minutes"
-                    elif cfg.max_steps is not None and state["step"] >= cfg.max_steps:
-                        stopped_by = "max_steps"
-                    if stopped_by != "epochs":
-                        break
+                    (epoch_over,) = run.any(batch is None)
+                    while not epoch_over:
+                        losses = model.training_step(batch, optimizers, ctx)
+                        run.average_buffers(model)
+                        batch = next(stream, None)
+                        # One agreement per step: every rank leaves the loop after the same step.
+                        non_finite, signalled, time_up, epoch_over = run.any(
+                            not all(math.isfinite(v) for v in losses.values()), stop is not None and stop.is_set(),
+                            time.perf_counter() - invocation_start > budget_s, batch is None)
+                        if non_finite:
+                            raise TrainingError(f"non-finite loss at step {state['step']}: {losses}"
+                                                f"{' (on some rank)' if run.enabled else ''}; lower --lr or use "
+                                                f"--precision fp32")
+                        done += 1
+                        state.update(step=state["step"] + 1, batch_in_epoch=done, samples_in_epoch=done * global_batch)
+                        if signalled:
+                            raise KeyboardInterrupt
+                        for k, v in losses.items():
+                            sums[k] = sums.get(k, 0.0) + v
+                        n_logged += 1
+                        bar.update(1)
+                        bar.set_postfix(loss=f"{losses['loss']:.1f}", rec=f"{losses['rec']:.1f}")
+                        if state["step"] % cfg.log_every == 0:
+                            now = time.perf_counter()
+                            means = run.mean({k: v / n_logged for k, v in sums.items()})
+                            if main:
+                                train_log.write({"step": state["step"], "epoch": epoch, "elapsed_s": elapsed(),
+                                                 "samples_per_s": n_logged * global_batch / (now - t_log), **means})
+                            sums, n_logged, t_log = {}, 0, now
+                        if cfg.val_every and state["step"] % cfg.val_every == 0:
+                            last_val = run_validation()
+                        if time_up:
+                            stopped_by = "max_minutes"
+                        elif cfg.max_steps is not None and state["step"] >= cfg.max_steps:
+                            stopped_by = "max_steps"
+                        if stopped_by != "epochs":
+                            break
                 bar.close()
                 if stopped_by == "epochs":
                     state.update(epoch=state["epoch"] + 1, batch_in_epoch=0, samples_in_epoch=0)
