@@ -156,7 +156,12 @@ class Completer:
         path = f"fused {self.precision}"
         return path if onednn_runs(self.ctx.autocast_dtype or torch.float32) else path + " (torch.addmm)"
 
-    def _network_input(self, observation: Observation | np.ndarray | torch.Tensor) -> torch.Tensor:
+    def network_input(self, observation: Observation | np.ndarray | torch.Tensor) -> torch.Tensor:
+        """The checked (1, 2, N, N, N) float32 network input of an observation or its array.
+
+        Raises:
+            CompletionInputError: wrong type or shape, or NaN/inf values.
+        """
         if hasattr(observation, "network_input"):
             observation = observation.network_input()
         if isinstance(observation, torch.Tensor):
@@ -193,7 +198,7 @@ class Completer:
         """
         if isinstance(num_samples, bool) or not isinstance(num_samples, int | np.integer) or num_samples < 1:
             raise CompletionInputError(f"num_samples must be a positive int, got {num_samples!r}")
-        x = self._network_input(observation)
+        x = self.network_input(observation)
         temperature = self.box_temperature if box_temperature is None else box_temperature
         try:
             temperature = check_box_temperature(temperature, getattr(self.model, "box_dim", 0) > 0)

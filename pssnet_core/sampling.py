@@ -314,7 +314,7 @@ class CheckedSampler:
         if isinstance(num_samples, bool) or not isinstance(num_samples, int | np.integer) or num_samples < 1:
             raise CompletionInputError(f"num_samples must be a positive int, got {num_samples!r}")
         known_occupied, known_free, pose = _grid_parts(observation)
-        x = self.completer._network_input(observation)
+        x = self.completer.network_input(observation)
         model = self.completer.model
         temperature = self.completer.box_temperature if box_temperature is None else box_temperature
         has_box = int(getattr(model, "box_dim", 0) or 0) > 0

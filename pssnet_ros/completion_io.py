@@ -72,7 +72,8 @@ def load_pipeline(values: dict[str, Any]) -> CompletionPipeline:
         raise ValueError(f"invalid parameters: {error}") from None
     try:  # CheckpointError is a ValueError, and so is an unavailable device
         pipeline = CompletionPipeline.from_checkpoint(values["model_path"] or None, None, device=values["device"],
-                                                      threads=values["threads"] or None)
+                                                      threads=values["threads"] or None,
+                                                      precision=values["precision"])
     except ValueError as error:
         raise ValueError(f"cannot load the completion model: {error}") from None
     try:

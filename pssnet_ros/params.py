@@ -7,7 +7,7 @@ config from the specs alone: adding a pipeline parameter is one line here. Range
 (rclpy rejects out-of-range values itself, with a reason); :func:`check_values` applies the same per-value
 rules to a plain dict (a YAML file checked without a node) and leaves the rules that span several values to
 the configs' own checks (``PipelineConfig``, ``GraspConfig``, ``GripperConfig``). Nothing is silently
-clamped. The model parameters (model_path, device, threads) and autostart take effect on the lifecycle
+clamped. The model parameters (model_path, device, threads, precision) and autostart take effect on the lifecycle
 ``configure`` and can change only while the node is unconfigured (:data:`CONFIGURE_ONLY`); the others can
 change at any time. Defaults here equal config/completion_node.yaml (a test checks that).
 """
@@ -133,6 +133,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("device", "torch device of the model", default="cpu", configure_only=True, choices=("cpu", "cuda")),
     ParamSpec("threads", "torch CPU threads; 0 = torch's default (all cores)", 0, 256, default=0,
               configure_only=True),
+    ParamSpec("precision", "network precision: auto = bf16 where the CPU (AVX512-BF16/AMX) or GPU runs it natively, "
+              "else fp32", default="auto", configure_only=True, choices=("auto", "fp32", "bf16")),
     ParamSpec("num_samples", "completions per call when the request says 0 (and in continuous mode)", 1, 1000,
               field="num_samples", constraints="<= max_num_samples"),
     ParamSpec("max_num_samples", "requests asking for more samples are rejected", 1, 1000, field="max_num_samples"),

@@ -320,3 +320,16 @@ def test_box_temperature_reaches_the_model_and_zero_means_the_models_own(scene, 
         PipelineConfig(box_temperature=-1.0)
     pipeline.check_config(PipelineConfig(box_temperature=1.0))
     tiny_pipeline.check_config(PipelineConfig(box_temperature=1.5))  # PSSNet: any temperature in range
+
+
+def test_the_node_precision_parameter_reaches_the_model(tmp_path):
+    """The node's `precision` parameter picks the network's precision (bf16 is emulated on CPUs without it)."""
+    from pssnet_ros import params
+    from pssnet_ros.completion_io import load_pipeline
+
+    path = str(tiny_checkpoint(tmp_path / "tiny.pt"))
+    for precision in ("fp32", "bf16"):
+        pipeline = load_pipeline(dict(params.defaults(), model_path=path, threads=1, precision=precision))
+        assert pipeline.completer.precision == precision
+    with pytest.raises(ValueError, match="precision"):
+        load_pipeline(dict(params.defaults(), model_path=path, threads=1, precision="fp8"))

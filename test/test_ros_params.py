@@ -46,7 +46,7 @@ def test_descriptors_carry_type_range_and_when_they_may_change():
     assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (1, 1000)
     d = SPECS["sync_tolerance"].descriptor()
     assert d.type == ParameterType.PARAMETER_DOUBLE and d.floating_point_range[0].to_value == 10.0
-    for name in ("autostart", "model_path", "device", "threads"):
+    for name in ("autostart", "model_path", "device", "threads", "precision"):
         assert name in CONFIGURE_ONLY and "set before configure" in SPECS[name].descriptor().additional_constraints
     assert "num_samples" not in CONFIGURE_ONLY
     assert "one of: cpu, cuda" in SPECS["device"].descriptor().additional_constraints
