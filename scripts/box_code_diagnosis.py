@@ -7,6 +7,9 @@ and measures the handle of each decoded shape (pssnet_core.evaluation.handles):
    rest of the latent at the posterior mean -> does the decoder draw the handle where the box says?
 2. samples of the model's box posterior (20 per view) -> how often is there a handle at all?
 3. those samples' boxes snapped to the nearest rigid cuboid (flow inverse, least-squares box, flow again).
+4. the decoder's reach: the flow codes of the mug turned to every ``--reach-step`` degrees all round, rest of the
+   latent at the posterior mean, by how far the box puts the handle from straight behind the mug (seen from the
+   camera) -> where does the decoder stop drawing the handle where the box says?
 
 Needs a training checkpoint (the flow embeds boxes; exports drop it). Usage:
     .venv/bin/python scripts/box_code_diagnosis.py --checkpoint runs/pssnet32_large/best.pt --views 24
@@ -26,6 +29,8 @@ from pssnet_core.evaluation.testsets import load_test_set
 from pssnet_core.models.checkpoint import load_checkpoint
 from pssnet_core.shapes import shape_of
 
+#: lower edges of the reach measure's bands of |azimuth from straight behind| (degrees)
+REACH_BANDS = (0, 30, 60, 90, 120, 150)
 #: corner signs in Shape.box_corners order (binary counting, x fastest)
 SIGNS = np.array([[(i & 1) * 2 - 1, ((i >> 1) & 1) * 2 - 1, ((i >> 2) & 1) * 2 - 1] for i in range(8)], float)
 
@@ -55,6 +60,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=24)
     parser.add_argument("--samples", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--reach-step", type=float, default=15.0, help="azimuth step of the reach measure (deg)")
     args = parser.parse_args()
     model = load_checkpoint(args.checkpoint)[0].eval()
     if getattr(model, "box_dim", 0) == 0:
@@ -66,6 +72,7 @@ def main() -> None:
     k = model.box_dim
     rates: dict[str, list[float]] = {"allowed boxes": [], "posterior samples": [], "snapped samples": []}
     errors: list[float] = []
+    reach: dict[int, list[tuple[bool, float]]] = {band: [] for band in REACH_BANDS}
     for view in views:
         shape = shape_of(view.identity)
         arc = plausible_handle_arc(view, view.depth_view, mug_parts(shape)).arc(0.01)
@@ -91,10 +98,33 @@ def main() -> None:
             snapped_codes = model.embed_box(model.normalise_box(torch.from_numpy(snapped.reshape(-1, 24)).float()))
             z_snapped = torch.cat([snapped_codes, z[:, k:]], 1)
             rates["snapped samples"].append(float(np.isfinite(decode_handles(model, z_snapped, view, geometry)).mean()))
+
+            # Reach: every azimuth all round, binned by the angle between the box's handle and straight behind.
+            camera = np.linalg.inv(view.object_pose)[:2, 3]  # the camera in the mug's frame (handle along +x)
+            behind = float(np.degrees(np.arctan2(-camera[1], -camera[0])))
+            around = np.arange(-180.0, 180.0, args.reach_step)
+            boxes = np.stack([box_in_grid(shape, turned(view.object_pose, a), view.grid_pose, np.eye(4))
+                              for a in around])
+            codes = model.embed_box(model.normalise_box(torch.from_numpy(boxes)))
+            got = decode_handles(model, torch.cat([codes, mu[:, k:].expand(len(codes), -1)], 1), view, geometry)
+            for wanted_deg, got_deg in zip(around, got, strict=True):
+                away = abs(float(circular_difference_deg(np.array([wanted_deg]), np.array([behind]))[0]))
+                band = max(b for b in REACH_BANDS if away >= b)
+                drawn = bool(np.isfinite(got_deg))
+                error = abs(float(circular_difference_deg(np.array([got_deg]), np.array([wanted_deg]))[0])) \
+                    if drawn else float("nan")
+                reach[band].append((drawn, error))
     print(f"{len(rates['allowed boxes'])} hidden-handle views with an arc of 3 azimuths or more")
     for name, values in rates.items():
         print(f"{name:>18}: a handle in {100 * np.mean(values):.0f} % of decoded shapes")
     print(f"allowed boxes: handle {np.mean(errors):.1f} deg (mean) from the azimuth the box was turned to")
+    print("reach: box codes of the mug turned all round; angle of the box's handle from straight behind the mug")
+    for band, entries in reach.items():
+        drawn = [d for d, _ in entries]
+        errs = [e for d, e in entries if d]
+        print(f"  {band:>3}-{band + 30 if band < 150 else 180:>3} deg: {len(entries):>4} decodes, a handle in "
+              f"{100 * np.mean(drawn):.0f} %, {np.median(errs) if errs else float('nan'):.1f} deg (median) from "
+              f"where the box puts it, within 30 deg in {100 * np.mean([e <= 30 for e in errs]) if errs else 0:.0f} %")
 
 
 if __name__ == "__main__":
