@@ -115,16 +115,30 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
 
     assert change_state(ros, Transition.TRANSITION_ACTIVATE)
     assert get_state(ros) == "active"
-    scene = render_mug_scene(seed=3)
+    scene = render_mug_scene(seed=3)  # a camera pitched 30 degrees: the true up_vector is not the default
+    assert ros.set_parameters(up_vector=[float(v) for v in scene.up])[0].successful
     assert service.wait_for_service(timeout_sec=30)
     response = ros.call(service, make_request(scene, stamped_header(5)), timeout=120)
     assert response.success, response.message
     assert len(response.completions) == 3
-    active = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "1" and d, 30,
-                        "diagnostics counting the call")
+    # The call is counted when it starts and timed when it ends: a status published in between shows the one but
+    # not the other (the checked sampler's call spans a 1 Hz diagnostics tick on a busy machine).
+    latency = "latency p50 (ms, last 10 s)"
+    active = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "1"
+                        and float(d[latency]) > 0 and d, 30, "diagnostics counting and timing the call")
     assert active["level"] == DiagnosticStatus.OK
     assert active["model"] == "pssnet 32^3" and active["device"] == "cpu"
-    assert float(active["latency p50 (ms, last 10 s)"]) > 0
+    assert active["sampler"] == "checked" and float(active["up_vector vs support plane (deg)"]) < 1.0
+    # The default (level-camera) up_vector on the same pitched view: answered, and flagged on every channel.
+    assert ros.set_parameters(up_vector=[0.0, -1.0, 0.0])[0].successful
+    mark = len(node.lines())
+    response = ros.call(service, make_request(scene, stamped_header(6)), timeout=120)
+    assert response.success and "tilted 30 deg from up_vector" in response.message, response.message
+    warned = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "2"
+                        and d["level"] == DiagnosticStatus.WARN and d, 30, "a WARN status for the wrong up_vector")
+    assert "tilted 30 deg from up_vector" in warned["message"]
+    assert float(warned["up_vector vs support plane (deg)"]) == pytest.approx(30.0, abs=1.0)
+    wait_until(lambda: any("up_vector looks wrong" in line for line in node.lines(mark)), 30, "the warning logged")
 
     assert change_state(ros, Transition.TRANSITION_DEACTIVATE)
     assert get_state(ros) == "inactive"
