@@ -90,7 +90,8 @@ def write_figure(path: Path, view, response, max_samples: int = 4) -> None:
     """What the node made of the view, as surfaces one colour per sample, so that the hidden side's spread shows.
 
     Top row, seen from the camera: the depth image with the object's mask, then each sample (the observed part
-    dark red): they agree where the camera saw. Bottom row, seen from above with the camera at the bottom, so
+    dark red): they agree where the camera saw. The samples shown: the heaviest (the checked sampler's weights), or
+    the most different when all weigh the same. Bottom row, seen from above with the camera at the bottom, so
     that the hidden side is at the top: every sample's surface coloured by the share of samples that have it,
     then each sample alone. Last column: the best grasps (gripper outlines, best in green,
     labelled with rank and score) over the observed surface and the samples, from both sides.
@@ -115,7 +116,16 @@ def write_figure(path: Path, view, response, max_samples: int = 4) -> None:
     every_sample = [level(pointcloud2_to_numpy(c)[0]) for c in response.completions]
     clouds = [c for c in [known, *every_sample] if len(c)]
     origin = np.min([c.min(axis=0) for c in clouds], axis=0)  # one lattice for every cloud
-    chosen = most_different(every_sample, max_samples, voxel, origin)
+    weights = np.asarray(response.sample_weights, np.float64)
+    if len(weights) == len(every_sample) and np.ptp(weights) > 1e-6:
+        # The checked sampler's samples are already spread over what the view allows: show the ones that stand
+        # for most of the plausible shapes.
+        chosen = [int(i) for i in np.argsort(-weights, kind="stable")[:max_samples]]
+        which = "the heaviest"
+    else:
+        chosen = most_different(every_sample, max_samples, voxel, origin)
+        weights = np.full(len(every_sample), 1.0 / max(len(every_sample), 1))
+        which = "the most different"
     samples = [every_sample[i] for i in chosen]
     known_mesh = surface_of(known, voxel, origin)
     meshes = [surface_of(c, voxel, origin) for c in samples]
@@ -150,11 +160,11 @@ def write_figure(path: Path, view, response, max_samples: int = 4) -> None:
     ax.imshow(np.where(view.depth > 0, view.depth, np.nan)[v0:v1, u0:u1], cmap="viridis")
     ax.contour(view.mask[v0:v1, u0:u1] > 0, levels=[0.5], colors="red", linewidths=1.0)
     hidden = {False: "hidden", True: "visible"}.get(view.handle_visible, "absent")
-    ax.set_title(f"depth + mask (handle {hidden})\nbelow: {len(samples)} of {len(every_sample)} samples, the most "
-                 f"different;\ndark red = observed; yellow = in every sample", fontsize=9)
+    ax.set_title(f"depth + mask (handle {hidden})\nbelow: {len(samples)} of {len(every_sample)} samples, {which};"
+                 f"\ndark red = observed; yellow = in every sample", fontsize=9)
     ax.set_axis_off()
     for k, (i, mesh) in enumerate(zip(chosen, meshes, strict=True)):
-        ax3d = panel(2 + k, f"sample {i}, from the camera", from_camera, objects)
+        ax3d = panel(2 + k, f"sample {i} (weight {weights[i]:.2f}), from the camera", from_camera, objects)
         draw_surface(ax3d, mesh, colours[k % len(colours)])
         draw_surface(ax3d, known_mesh, "darkred")
     ax3d = panel(columns + 2, f"all {len(every_sample)} samples from above:\nshare of samples with each part",
