@@ -138,8 +138,8 @@ class PipelineConfig:
             raise ValueError(f"grasp_top_k must be >= 1 and grasp_min_score in [0, 1], got {self.grasp_top_k} and "
                              f"{self.grasp_min_score}")
 
-
     def checked_sampler_config(self) -> CheckedSamplerConfig:
+        """The checked sampler's parameters that this config sets."""
         from pssnet_core.sampling import CheckedSamplerConfig
 
         return CheckedSamplerConfig(delta=self.check_delta, proposals_per_sample=self.proposals_per_sample)
@@ -262,7 +262,6 @@ class CompletionPipeline:
 
         if config.sampler == "posterior" or not CheckedSampler.applies_to(self.completer):
             return self.completer
-
         wanted = config.checked_sampler_config()
         if self._checked is None or self._checked.sampler_config != wanted:
             self._checked = CheckedSampler(self.completer, wanted)
@@ -373,8 +372,8 @@ class CompletionPipeline:
                                                             box_temperature=config.box_temperature or None)
             except CompletionInputError as error:
                 raise PipelineInputError(str(error)) from error
-        weights = getattr(completion, "weights", None)
-        if weights is None or len(weights) != n:
+        weights = getattr(completion, "weights", None)  # the checked sampler's; the posterior's weigh alike
+        if weights is None:
             weights = np.full(n, 1.0 / n, np.float32)
         t2 = time.perf_counter()
         pose = observation.pose

@@ -39,6 +39,7 @@ import torch
 
 from pssnet_core.geometry import GridPose
 from pssnet_core.inference import CompletionInputError, CompletionResult
+from pssnet_core.spread import BitRows, farthest_point_selection
 
 SAMPLERS: tuple[str, ...] = ("posterior", "checked")
 
@@ -152,7 +153,7 @@ class GridCheck:
         deep[np.ravel_multi_index(tuple(free_ijk.T), (n, n, n))] = (behind < 0) | free_flat[np.maximum(behind, 0)]
         return cls(observed_rays=observed, deep_free=deep)
 
-    def violations(self, occupancy: np.ndarray, packed: PackedGrids) -> tuple[np.ndarray, np.ndarray]:
+    def violations(self, occupancy: np.ndarray, packed: BitRows) -> tuple[np.ndarray, np.ndarray]:
         """Per proposal of a (P, N^3) bool array (and the same packed): the fraction of observed voxels left
         unexplained, and the number of occupied deep-free voxels."""
         if len(self.observed_rays):
@@ -162,59 +163,6 @@ class GridCheck:
         else:
             missed = np.zeros(occupancy.shape[0])
         return missed.astype(np.float64), packed.count_within(self.deep_free)
-
-
-class PackedGrids:
-    """Occupancy grids as packed bit rows, for Jaccard distances between them (numpy's popcount on 64-bit words:
-    a row against 200 others at 32^3 in well under a millisecond, where bool tensor reductions took ~200 ms)."""
-
-    def __init__(self, occupancy: np.ndarray) -> None:
-        bits = np.packbits(np.asarray(occupancy, bool).reshape(occupancy.shape[0], -1), axis=1)
-        pad = (-bits.shape[1]) % 8
-        self.words = np.ascontiguousarray(np.pad(bits, ((0, 0), (0, pad)))).view(np.uint64)
-        self.sizes = np.bitwise_count(self.words).sum(axis=1, dtype=np.int64)
-
-    def __len__(self) -> int:
-        return self.words.shape[0]
-
-    def subset(self, rows: np.ndarray) -> PackedGrids:
-        """The grids ``rows``, without packing them again."""
-        subset = object.__new__(PackedGrids)
-        subset.words, subset.sizes = self.words[rows], self.sizes[rows]
-        return subset
-
-    def count_within(self, mask: np.ndarray) -> np.ndarray:
-        """Occupied voxels of each grid inside a flat bool ``mask`` of one grid's size."""
-        words = PackedGrids(mask.reshape(1, -1)).words[0]
-        return np.bitwise_count(self.words & words).sum(axis=1, dtype=np.int64)
-
-    def jaccard_to(self, index: int) -> np.ndarray:
-        """1 - IoU of every grid to grid ``index`` (two empty grids: distance 0)."""
-        inter = np.bitwise_count(self.words & self.words[index]).sum(axis=1, dtype=np.int64)
-        union = self.sizes + self.sizes[index] - inter
-        return np.where(union > 0, 1.0 - inter / np.maximum(union, 1), 0.0)
-
-
-def farthest_point_selection(grids: PackedGrids, count: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Picks ``count`` grids that spread out (greedy farthest point on Jaccard distance).
-
-    Returns:
-        The picked indices (``min(count, len(grids))`` of them at most, distinct) and, for every grid, the
-        position in the picked list of its nearest picked grid (its Voronoi cell).
-    """
-    picked = [int(start)]
-    nearest = grids.jaccard_to(start)
-    cell = np.zeros(len(grids), dtype=np.int64)
-    for position in range(1, min(count, len(grids))):
-        candidate = int(np.argmax(nearest))
-        if nearest[candidate] <= 0.0:
-            break  # every remaining grid equals a picked one
-        picked.append(candidate)
-        distance = grids.jaccard_to(candidate)
-        closer = distance < nearest
-        cell[closer] = position
-        nearest = np.minimum(nearest, distance)
-    return np.asarray(picked, dtype=np.int64), cell
 
 
 @dataclass(frozen=True)
@@ -325,7 +273,7 @@ class CheckedSampler:
         t1 = time.perf_counter()
         occupancy = probs > 0.5
         check = GridCheck.prepare(known_occupied, known_free, pose, self.sampler_config.delta)
-        packed = PackedGrids(occupancy)
+        packed = BitRows.pack(occupancy)
         missed, free = check.violations(occupancy, packed)
         source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
         limit = self.sampler_config.max_missed_fraction

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from pssnet_core.spread import BitRows, farthest_point_selection
+
 #: Light direction for the shading (from above, behind the viewer's left shoulder when seen from the camera).
 LIGHT = np.array([-0.4, 0.3, 0.85]) / np.linalg.norm([-0.4, 0.3, 0.85])
 
@@ -101,21 +103,17 @@ def sample_agreement(samples: list[np.ndarray], voxel_size: float, origin: np.nd
 
 def most_different(samples: list[np.ndarray], count: int, voxel_size: float, origin: np.ndarray) -> list[int]:
     """Indices of ``count`` samples that differ most from each other (farthest-point order on the Jaccard
-    distance of their voxel sets, starting from sample 0), for figures that must show the spread."""
-    keys = []
-    for c in samples:
-        index = np.rint((np.asarray(c, np.float64) - origin) / voxel_size).astype(np.int64)
-        keys.append(set(map(tuple, index)))
-    chosen = [0]
-    distance = np.full(len(samples), np.inf)
-    while len(chosen) < min(count, len(samples)):
-        last = keys[chosen[-1]]
-        for i, other in enumerate(keys):
-            union = len(last | other)
-            distance[i] = min(distance[i], 1.0 - len(last & other) / union if union else 0.0)
-        distance[chosen] = -1.0
-        chosen.append(int(np.argmax(distance)))
-    return chosen
+    distance of their voxel sets, starting from sample 0), for figures that must show the spread. When fewer
+    distinct samples exist, the rest follow in index order."""
+    if not samples:
+        return []
+    grids = [lattice_occupancy(c, voxel_size, origin) for c in samples]
+    stacked = np.zeros((len(grids), *np.max([g.shape for g in grids], axis=0)), dtype=bool)
+    for grid, g in zip(stacked, grids, strict=True):  # one lattice: each grid's corner is the origin
+        grid[:g.shape[0], :g.shape[1], :g.shape[2]] = g
+    picked = [int(i) for i in farthest_point_selection(BitRows.pack(stacked), count)[0]]
+    rest = [i for i in range(len(samples)) if i not in picked]
+    return (picked + rest)[:min(count, len(samples))]
 
 
 def equal_box(ax: Any, points: np.ndarray, margin: float = 0.01) -> None:

@@ -18,9 +18,8 @@ from pssnet_core.sampling import (
     CheckedSampler,
     CheckedSamplerConfig,
     GridCheck,
-    PackedGrids,
-    farthest_point_selection,
 )
+from pssnet_core.spread import BitRows, farthest_point_selection
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 N = 16
@@ -59,7 +58,7 @@ def test_grid_check_counts_what_alg1_would_reject():
     intruding = solid.copy()
     intruding[1:3, 6:8, 6:8] = True  # 8 voxels far in front: the camera saw through them
     grids = np.stack([solid, hollow, too_deep, half, shallow, intruding]).reshape(6, -1)
-    missed, free = check.violations(grids, PackedGrids(grids))
+    missed, free = check.violations(grids, BitRows.pack(grids))
     np.testing.assert_allclose(missed, [0.0, 0.0, 1.0, 0.5, 0.0, 0.0])
     assert free.tolist() == [0, 0, 0, 0, 0, 8]
 
@@ -75,7 +74,7 @@ def test_packed_jaccard_and_farthest_point_selection_with_cell_weights():
             grids.append(g)
             labels.append(label)
     grids_array = np.stack(grids)
-    packed = PackedGrids(grids_array)
+    packed = BitRows.pack(grids_array)
     a, b = grids_array[0], grids_array[12]
     expected = 1.0 - (a & b).sum() / (a | b).sum()
     assert packed.jaccard_to(0)[12] == pytest.approx(expected) and packed.jaccard_to(0)[0] == 0.0
@@ -85,7 +84,7 @@ def test_packed_jaccard_and_farthest_point_selection_with_cell_weights():
     assert sorted(counts.tolist()) == [1, 5, 10]
     for position, index in enumerate(picked):  # each picked grid's cell is its own cluster
         assert set(np.asarray(labels)[cell == position]) == {labels[index]}
-    copies = PackedGrids(np.repeat(grids_array[:1], 4, axis=0))
+    copies = BitRows.pack(np.repeat(grids_array[:1], 4, axis=0))
     assert len(farthest_point_selection(copies, 3)[0]) == 1  # identical grids: nothing more to spread over
 
 

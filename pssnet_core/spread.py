@@ -1,0 +1,68 @@
+"""Occupancy grids that spread out: Jaccard distances on packed bits and greedy farthest-point selection.
+
+One piece for the two places that pick a few grids differing most: the checked sampler (which samples to return,
+and the share of the accepted proposals each stands for) and the figures (which samples to draw). numpy only, so
+that figure code does not pull in torch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class BitRows:
+    """Occupancy grids as rows of packed bits (64-bit words), with their voxel counts.
+
+    Why packed: a grid against 200 others at 32^3 is a few thousand popcounts (numpy's ``bitwise_count``), well
+    under a millisecond, where torch bool reductions over the same grids took ~200 ms.
+    """
+
+    def __init__(self, words: np.ndarray) -> None:
+        self.words = words
+        self.sizes = np.bitwise_count(words).sum(axis=1, dtype=np.int64)
+
+    @classmethod
+    def pack(cls, occupancy: np.ndarray) -> BitRows:
+        """(G, ...) bool grids (any grid shape, the same for all) -> their bit rows."""
+        bits = np.packbits(np.asarray(occupancy, bool).reshape(len(occupancy), -1), axis=1)
+        return cls(np.ascontiguousarray(np.pad(bits, ((0, 0), (0, (-bits.shape[1]) % 8)))).view(np.uint64))
+
+    def __len__(self) -> int:
+        return self.words.shape[0]
+
+    def subset(self, rows: np.ndarray) -> BitRows:
+        """The grids ``rows``, without packing them again."""
+        return BitRows(self.words[rows])
+
+    def count_within(self, mask: np.ndarray) -> np.ndarray:
+        """Occupied voxels of each grid inside ``mask`` (one grid's shape, or flat)."""
+        return np.bitwise_count(self.words & BitRows.pack(mask[None]).words[0]).sum(axis=1, dtype=np.int64)
+
+    def jaccard_to(self, index: int) -> np.ndarray:
+        """1 - IoU of every grid to grid ``index`` (two empty grids: distance 0)."""
+        inter = np.bitwise_count(self.words & self.words[index]).sum(axis=1, dtype=np.int64)
+        union = self.sizes + self.sizes[index] - inter
+        return np.where(union > 0, 1.0 - inter / np.maximum(union, 1), 0.0)
+
+
+def farthest_point_selection(grids: BitRows, count: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Picks ``count`` grids that spread out (greedy farthest point on Jaccard distance, ties to the lowest index).
+
+    Returns:
+        The picked indices (``min(count, len(grids))`` of them at most, distinct: the selection stops when every
+        remaining grid equals a picked one) and, for every grid, the position in the picked list of its nearest
+        picked grid (its Voronoi cell).
+    """
+    picked = [int(start)]
+    nearest = grids.jaccard_to(start)
+    cell = np.zeros(len(grids), dtype=np.int64)
+    for position in range(1, min(count, len(grids))):
+        candidate = int(np.argmax(nearest))
+        if nearest[candidate] <= 0.0:
+            break  # every remaining grid equals a picked one
+        picked.append(candidate)
+        distance = grids.jaccard_to(candidate)
+        closer = distance < nearest
+        cell[closer] = position
+        nearest = np.minimum(nearest, distance)
+    return np.asarray(picked, dtype=np.int64), cell
