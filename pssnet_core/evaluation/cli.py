@@ -72,6 +72,14 @@ def _add_plausible_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
+def _add_sampler_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--samplers", type=_names, default=("posterior",),
+                   help="posterior sampling only, or also each model behind the plausibility-checked sampler (method "
+                        "<model>_checked): posterior, checked or posterior,checked")
+    p.add_argument("--check-delta", type=float, default=None,
+                   help="the checked sampler's depth tolerance in metres (default 0.01)")
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Adds ``plausible``, ``evaluate``, ``handles``, ``ambiguity`` and ``memorisation`` to ``pssnet``."""
     p = subparsers.add_parser(
@@ -92,11 +100,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
     _add_plausible_options(e)
     e.add_argument("--samples", type=int, default=100, help="completions per observation (paper: 100)")
-    e.add_argument("--samplers", type=_names, default=("posterior",),
-                   help="posterior sampling only, or also each model behind the plausibility-checked sampler (method "
-                        "<model>_checked): posterior, checked or posterior,checked")
-    e.add_argument("--check-delta", type=float, default=None,
-                   help="the checked sampler's depth tolerance in metres (default 0.01)")
+    _add_sampler_options(e)
     e.add_argument("--delta", type=float, default=PAPER_DELTA, help="the paper's delta (m)")
     e.add_argument("--scaled-delta", type=float, default=SCALED_DELTA,
                    help="the delta scaled to real-size objects (m); <= 0 to skip")
@@ -147,11 +151,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="one mug set and/or one narrow-slit set (default mugs,ycb_narrow; the out-of-family ones: "
                         "oof_mugs,oof_narrow)")
     a.add_argument("--samples", type=int, default=20, help="completions per view")
-    a.add_argument("--samplers", type=_names, default=("posterior",),
-                   help="posterior sampling only, or also each model behind the plausibility-checked sampler (method "
-                        "<model>_checked): posterior, checked or posterior,checked")
-    a.add_argument("--check-delta", type=float, default=None,
-                   help="the checked sampler's depth tolerance in metres (default 0.01)")
+    _add_sampler_options(a)
     a.add_argument("--box-temperatures", type=_floats, default=(1.0,),
                    help="box temperatures for models with a box part, e.g. 1,1.5,2,3 (others run at 1 only)")
     a.add_argument("--max-views", type=int, default=None,
@@ -374,10 +374,11 @@ def load_completers(models: list[str], spec: str, device: str, threads: int | No
         if "posterior" in samplers:
             out[model] = completer
         if "checked" in samplers:
-            try:
+            if CheckedSampler.applies_to(completer):
                 out[f"{model}_checked"] = CheckedSampler(completer, config)
-            except ValueError as error:
-                print(f"note: {model}: {error}", file=sys.stderr)
+            else:
+                print(f"note: {model} has no latent to propose from: sampled as it is, no {model}_checked",
+                      file=sys.stderr)
                 out.setdefault(model, completer)
     return out
 
