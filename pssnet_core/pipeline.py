@@ -41,6 +41,15 @@ if TYPE_CHECKING:  # torch is imported only when a model is loaded: `completion_
 FALLBACK_VOXEL_SIZE = GridConfig().voxel_size
 
 
+def up_vector_warning(tilt_deg: float, limit_deg: float) -> str:
+    """What to tell the user when the support plane is tilted ``tilt_deg`` from ``up_vector`` ("" within
+    ``limit_deg``, when not measured (NaN), or with the check off: ``limit_deg`` 0)."""
+    if not tilt_deg > limit_deg > 0:
+        return ""
+    return (f"the support plane around the object is tilted {tilt_deg:.0f} deg from up_vector (up_check_deg "
+            f"{limit_deg:g}): set up_vector to the direction against gravity in the camera frame, or estimate_up")
+
+
 class PipelineInputError(ValueError):
     """The input (images, intrinsics, request options) cannot be processed; the message says why."""
 
@@ -397,10 +406,7 @@ class CompletionPipeline:
 
     @staticmethod
     def _note(completion: Any, up_disagreement: float, config: PipelineConfig) -> str:
-        notes = [str(getattr(completion, "note", ""))]
-        if up_disagreement > config.up_check_deg > 0:
-            notes.append(f"the support plane around the object is tilted {up_disagreement:.0f} deg from up_vector: "
-                         "set up_vector to the direction against gravity in the camera frame (or estimate_up: true)")
+        notes = [str(getattr(completion, "note", "")), up_vector_warning(up_disagreement, config.up_check_deg)]
         return "; ".join(n for n in notes if n)
 
     def with_config(self, **changes: Any) -> PipelineConfig:

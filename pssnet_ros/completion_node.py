@@ -52,7 +52,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from pssnet_core.pipeline import CompletionPipeline, PipelineResult
+from pssnet_core.pipeline import CompletionPipeline, PipelineResult, up_vector_warning
 from pssnet_ros.completion_io import (
     OUTPUT_TOPICS,
     STREAMS,
@@ -362,18 +362,13 @@ class CompletionNode(LifecycleNode):
         result, header = complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"],
                                            num_samples, compute_grasps)
         self._up_disagreement_deg = result.up_disagreement_deg
-        if self._up_disagreement_deg > self._values["up_check_deg"] > 0:
-            self.get_logger().warning(f"up_vector looks wrong: {self.up_warning()}",
-                                      throttle_duration_sec=WARN_THROTTLE_S)
+        if warning := self.up_warning():
+            self.get_logger().warning(f"up_vector looks wrong: {warning}", throttle_duration_sec=WARN_THROTTLE_S)
         return result, header
 
     def up_warning(self) -> str:
         """What the last checked input said about ``up_vector`` ("" when it agreed or was not checked)."""
-        tilt, limit = self._up_disagreement_deg, self._values["up_check_deg"]
-        if not tilt > limit > 0:
-            return ""
-        return (f"the support plane around the object is tilted {tilt:.0f} deg from up_vector (up_check_deg "
-                f"{limit:g}); set up_vector to the direction against gravity in the camera frame, or estimate_up")
+        return up_vector_warning(self._up_disagreement_deg, self._values["up_check_deg"])
 
     def _request_input(self, request: SampleCompletions.Request) -> tuple[Image, Image, CameraInfo]:
         if request.depth.height == 0:
