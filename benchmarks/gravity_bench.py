@@ -23,7 +23,7 @@ from pssnet_core.pipeline import CompletionPipeline, PipelineConfig
 from pssnet_core.shapes import make_shape, split_seeds
 from pssnet_ros.processes import cpu_kind
 
-LEVEL_CAMERA_UP = (0.0, -1.0, 0.0)
+LEVEL_CAMERA_UP = PipelineConfig().up_vector  # the node's default: a level camera
 
 
 def view_scores(pipeline: CompletionPipeline, view, shape, up: tuple[float, float, float]) -> dict[str, float]:
