@@ -31,9 +31,8 @@ from types import MappingProxyType
 
 import manifold3d as mf
 import numpy as np
-import trimesh
 
-from pssnet_core.shapes.procedural import MAX_DIAGONAL, Shape, ShapeError, ShapeId
+from pssnet_core.shapes.procedural import MAX_DIAGONAL, Shape, ShapeError, ShapeId, manifold_to_trimesh
 
 INDEPENDENT_FAMILIES: tuple[str, ...] = ("imug", "ibox", "ican", "ibottle")
 """Families of this generator (no name is shared with procedural's)."""
@@ -76,7 +75,7 @@ def make_independent_shape(family: str, seed: int) -> Shape:
     shift = (0.0, 0.0, -float(low[2]))
     solid = solid.translate(shift).scale((scale,) * 3)
     handle = None if handle is None else handle.translate(shift).scale((scale,) * 3)
-    mesh = _to_trimesh(solid)
+    mesh = manifold_to_trimesh(solid)
     extent = mesh.extents
     diagonal = float(np.linalg.norm(extent))
     if diagonal > MAX_DIAGONAL or not mesh.is_watertight:  # a generator bug, not bad input
@@ -86,13 +85,7 @@ def make_independent_shape(family: str, seed: int) -> Shape:
         attributes[key] = attributes[key] * scale  # lengths (keys ending in _m) as built, after fitting
     attributes.update(generator="independent", height=float(extent[2]), width_x=float(extent[0]),
                       width_y=float(extent[1]), diagonal=diagonal, volume=float(solid.volume()), scale_to_fit=scale)
-    return Shape(identity, mesh, None if handle is None else _to_trimesh(handle), attributes)
-
-
-def _to_trimesh(solid: mf.Manifold) -> trimesh.Trimesh:
-    out = solid.to_mesh()
-    return trimesh.Trimesh(vertices=np.asarray(out.vert_properties, dtype=np.float64)[:, :3],
-                           faces=np.asarray(out.tri_verts, dtype=np.int64), process=False)
+    return Shape(identity, mesh, None if handle is None else manifold_to_trimesh(handle), attributes)
 
 
 def _u(rng: np.random.Generator, low: float, high: float) -> float:

@@ -167,7 +167,7 @@ def make_shape(family: str, seed: int) -> Shape:
     # crc32 rather than hash(): Python's string hash is randomised per process.
     rng = np.random.default_rng([zlib.crc32(family.encode()), int(seed)])
     solid, handle, attributes = _BUILDERS[family](rng)
-    mesh = _to_trimesh(solid)
+    mesh = manifold_to_trimesh(solid)
     extent = mesh.extents
     diagonal = float(np.linalg.norm(extent))
     if diagonal > MAX_DIAGONAL:  # a generator bug, not bad input
@@ -175,13 +175,14 @@ def make_shape(family: str, seed: int) -> Shape:
     attributes.update(height=float(extent[2]), width_x=float(extent[0]), width_y=float(extent[1]),
                       diagonal=diagonal, volume=float(solid.volume()))
     attributes.setdefault("scale_to_fit", 1.0)
-    return Shape(identity, mesh, None if handle is None else _to_trimesh(handle), attributes)
+    return Shape(identity, mesh, None if handle is None else manifold_to_trimesh(handle), attributes)
 
 
 # --------------------------------------------------------------------------------------------- helpers
 
 
-def _to_trimesh(solid: mf.Manifold) -> trimesh.Trimesh:
+def manifold_to_trimesh(solid: mf.Manifold) -> trimesh.Trimesh:
+    """A manifold3d solid as a trimesh (the one conversion every shape source uses)."""
     out = solid.to_mesh()
     vertices = np.asarray(out.vert_properties, dtype=np.float64)[:, :3]
     faces = np.asarray(out.tri_verts, dtype=np.int64)

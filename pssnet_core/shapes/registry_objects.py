@@ -45,7 +45,7 @@ import numpy as np
 import trimesh
 
 from pssnet_core.shapes.mesh_io import MeshLoadError, load_mesh
-from pssnet_core.shapes.procedural import MAX_DIAGONAL, Shape, ShapeError, ShapeId
+from pssnet_core.shapes.procedural import MAX_DIAGONAL, Shape, ShapeError, ShapeId, manifold_to_trimesh
 
 REGISTRY_FAMILIES: tuple[str, ...] = ("rmug", "rbox", "rcan", "rbottle")
 """Families of the real modelled objects."""
@@ -352,13 +352,6 @@ def _to_manifold(mesh: trimesh.Trimesh) -> mf.Manifold:
     return solid
 
 
-def _to_trimesh(solid: mf.Manifold) -> trimesh.Trimesh:
-    out = solid.to_mesh()
-    # Manifold output shares vertices and is consistently wound: no processing (merging could pinch it).
-    return trimesh.Trimesh(np.asarray(out.vert_properties, dtype=np.float64)[:, :3],
-                           np.asarray(out.tri_verts, dtype=np.int64), process=False)
-
-
 def _fill_holes(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     import open3d as o3d  # only for repairs: importing pssnet_core.shapes stays light
 
@@ -389,7 +382,7 @@ def _solidify(mesh: trimesh.Trimesh, what: str) -> tuple[trimesh.Trimesh, str]:
         mesh = filled
     parts = mesh.split(only_watertight=False)
     if len(parts) > 1:
-        mesh = _to_trimesh(mf.Manifold.batch_boolean([_to_manifold(p) for p in parts], mf.OpType.Add))
+        mesh = manifold_to_trimesh(mf.Manifold.batch_boolean([_to_manifold(p) for p in parts], mf.OpType.Add))
         repair += ", parts united"
     if not mesh.is_watertight or mesh.volume <= 0:
         raise RegistryObjectError(f"{what}: cannot be made a watertight solid (repair tried: {repair})")
@@ -423,6 +416,6 @@ def _split_handle(mesh: trimesh.Trimesh) -> trimesh.Trimesh | None:
     z.append(high[2] + 0.001)
     r = [r[0], *r, r[-1]]
     outline = np.concatenate([[[0.0, z[0] - 0.001]], np.stack([r, z], axis=1), [[0.0, z[-1]]]])
-    outside = _to_trimesh(_to_manifold(mesh) - mf.CrossSection([outline], mf.FillRule.EvenOdd).revolve(96))
+    outside = manifold_to_trimesh(_to_manifold(mesh) - mf.CrossSection([outline], mf.FillRule.EvenOdd).revolve(96))
     pieces = [p for p in outside.split(only_watertight=False) if p.volume > _MIN_HANDLE_VOLUME_M3]
     return trimesh.util.concatenate(pieces) if pieces else None
