@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -266,12 +268,55 @@ def test_camera_frame_pose_convention():
     assert top and np.allclose(grasps.grid.rotations[top][:, :, 2], [0, 0, -1])  # top = straight down in the grid
 
 
-def test_top_and_side_approaches_are_generated():
+def test_top_side_and_tilted_approaches_are_generated():
     grid = generate_candidates(bar(), identity_pose(), config=GraspConfig(max_candidates=400), support_z=2.0)
-    kinds = set(grid.kinds.tolist())
-    assert kinds == {0, 1}
-    side = grid.rotations[grid.kinds == 1]
-    np.testing.assert_allclose(side[:, 2, 2], 0.0, atol=1e-12)  # side approaches are horizontal
+    assert set(grid.kinds.tolist()) == {0, 1, 2}
+    np.testing.assert_allclose(grid.rotations[grid.kinds == 0][:, 2, 2], -1.0, atol=1e-12)  # top: straight down
+    np.testing.assert_allclose(grid.rotations[grid.kinds == 1][:, 2, 2], 0.0, atol=1e-12)  # side: horizontal
+    tilted = grid.rotations[grid.kinds == 2]
+    np.testing.assert_allclose(tilted[:, 2, 2], -np.sin(np.radians(45.0)), atol=1e-12)  # 45 degrees down
+    np.testing.assert_allclose(np.einsum("kij,kil->kjl", tilted, tilted), np.tile(np.eye(3), (len(tilted), 1, 1)),
+                               atol=1e-12)
+
+
+def handle_behind_body() -> np.ndarray:
+    """A block (x 0-14) and, 3 voxels behind it, a 1-voxel thin bar (x 17, y 14-18, z 8-14): a mug's handle."""
+    occ = np.zeros((1, N, N, N), dtype=bool)
+    occ[:, 0:14, 6:26, 2:20] = True
+    occ[:, 17, 14:18, 8:14] = True
+    return occ
+
+
+def test_shallow_grasps_pinch_a_handle_whose_body_deep_fingers_would_hit():
+    occ, pose = handle_behind_body(), identity_pose()
+    # Level approaches only, and only from +x (onto the bar, towards the block), closing axis horizontal.
+    options = dict(max_candidates=2000, top_yaws=0, tilted_pitches=(), side_rolls=(0.0,), oversample=20.0)
+
+    def from_behind(config: GraspConfig) -> tuple[GraspCandidates, np.ndarray]:
+        candidates = generate_candidates(occ, pose, config=config, support_z=2.0)
+        candidates = candidates.subset(np.flatnonzero(candidates.rotations[:, 0, 2] < -0.99))
+        return candidates, score_grasps(candidates, occ, pose, 2.0, config)[0][:, 0]
+
+    def from_behind_holding(config: GraspConfig) -> GraspCandidates:
+        candidates, holds = from_behind(config)
+        return candidates.subset(np.flatnonzero(holds))
+
+    # The deepest grasps from behind take the block between the fingers too, which is wider than the opening.
+    assert len(from_behind_holding(GraspConfig(shallow_depths=(), **options))) == 0
+    shallow = from_behind_holding(GraspConfig(**options))
+    assert len(shallow) > 0
+    assert np.all(shallow.origins[:, 0] > 14.0)  # fingertips stop in the gap, short of the block
+
+
+def test_thin_parts_get_more_candidates_with_the_thin_anchor_bias():
+    occ, pose = handle_behind_body(), identity_pose()
+
+    def share_on_bar(bias: float) -> float:
+        config = GraspConfig(max_candidates=150, oversample=2.0, thin_anchor_bias=bias)
+        candidates = generate_candidates(occ, pose, config=config, support_z=2.0)
+        return float(np.mean(candidates.origins[:, 0] > 15.0))
+
+    assert share_on_bar(1.0) > 1.5 * share_on_bar(0.0)
 
 
 def test_max_candidates_bounds_the_count():
@@ -309,3 +354,14 @@ def test_single_completion_choice_and_plot(tmp_path):
     fig = plot_grasps(grasps, occ, identity_pose(), top_k=3, path=path, title="bar")
     assert path.stat().st_size > 10_000 and len(fig.axes) == 2
     matplotlib.pyplot.close(fig)
+
+
+def test_confident_choice_grips_firmest_among_the_sure_grasps_or_abstains():
+    grasps = plan_grasps(bar(), identity_pose(), None, GraspConfig(max_candidates=50), support_z=2.0)
+    grasps = grasps.subset(np.arange(3))
+    grasps = dataclasses.replace(grasps, scores=np.array([1.0, 0.95, 0.5]), secondary=np.array([0.2, 0.9, 1.0]))
+    assert grasps.confident_choice(0.9) == 1  # sure enough and grips best; the surest grips worse
+    assert grasps.confident_choice(1.0) == 0
+    assert dataclasses.replace(grasps, scores=np.array([0.8, 0.7, 0.5])).confident_choice(0.9) is None
+    with pytest.raises(GraspError):
+        grasps.confident_choice(0.0)

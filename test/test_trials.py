@@ -176,7 +176,7 @@ def test_plan_grasps_keeps_only_the_allowed_candidates():
     occupancy = np.zeros((1, 32, 32, 32), dtype=bool)
     occupancy[0, 12:20, 13:19, 0:12] = True  # a 5 x 3.75 x 7.5 cm block on the plane z = 0
     everything = plan_grasps(occupancy, pose, None, GraspConfig(), support_z=0.0)
-    assert set(everything.kinds) == {"top", "side"}
+    assert set(everything.kinds) == {"top", "side", "tilted"}
     sides = plan_grasps(occupancy, pose, None, GraspConfig(), support_z=0.0, allowed=lambda c: c.kinds == 1)
     assert len(sides) > 0 and set(sides.kinds) == {"side"}
     assert len(plan_grasps(occupancy, pose, None, GraspConfig(), support_z=0.0,

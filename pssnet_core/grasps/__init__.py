@@ -42,14 +42,17 @@ on a slanted face, touch with a small part. Opening margin is ``(max_opening - w
 spare opening tolerates pose error. Contact normals are not checked otherwise (voxel normals are coarse).
 
 Candidates (:func:`generate_candidates`, module ``candidates``). Anchors are the surface voxels of the union
-of the completions plus the observed points; orientations are a top approach (straight down, ``top_yaws``
-closing axes about the vertical) and side approaches (``side_yaws`` horizontal approach directions around the
-vertical, each with the closing axis horizontal and/or vertical: ``side_rolls``). For each (anchor,
-orientation) pair the hand slides along the approach until the palm would touch the union of the completions
-(one voxel short) or, approaching downwards, until the fingertips would reach the support plane. Then the
-closing axis is swept at full opening (half-voxel resolution): each completion's object extent along the
-closing axis is swept over twice the opening (half-voxel resolution): in each completion, the run of object
-along the closing axis through the anchor is measured; the completions whose run fits the gripper (with
+of the completions plus the observed points, drawn with a bias towards thin parts (``thin_anchor_bias``: a
+handle offers few surface voxels, so uniform draws rarely propose a grasp on it). Orientations are a top approach
+(straight down, ``top_yaws`` closing axes about the vertical), side approaches (``side_yaws`` horizontal
+approach directions around the vertical, each with the closing axis horizontal and/or vertical: ``side_rolls``)
+and the same approaches tilted downwards (``tilted_pitches``, e.g. 45 degrees), which reach a handle under a
+shelf. For each (anchor, orientation) pair the hand slides along the approach until the palm would touch the
+union of the completions (one voxel short) or, approaching downwards, until the fingertips would reach the
+support plane: the deepest grasp. Shallow variants stop with the fingertips ``shallow_depths`` past the first
+contact, so that a thin part in front of a body (a handle) can be pinched without the fingertips reaching the
+body. Then the closing axis is swept at full opening (half-voxel resolution): in each completion, the run of
+object along the closing axis through the anchor is measured; the completions whose run fits the gripper (with
 ``clearance`` on both sides) define the needed opening, ``width = their combined extent + 2 clearance`` (the
 widest completion's extent when the runs share a side), and the grasp is re-centred on it. A completion whose
 run does not fit is not held by this grasp; a run stops at the first empty slice, so a mug's rim is pinched

@@ -18,12 +18,14 @@ from pssnet_core.grasps.results import GraspCandidates
 
 def approach_orientations(config: GraspConfig) -> tuple[np.ndarray, np.ndarray]:
     """The candidate orientations: (O, 3, 3) gripper axes (columns x, y, z) in the grid frame, (O,) kinds."""
-    rotations, kinds = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls))
+    rotations, kinds = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls),
+                                     tuple(config.tilted_pitches))
     return rotations.copy(), kinds.copy()
 
 
 @functools.lru_cache(maxsize=8)
-def _orientations(top_yaws: int, side_yaws: int, side_rolls: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _orientations(top_yaws: int, side_yaws: int, side_rolls: tuple[float, ...],
+                  tilted_pitches: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
     """:func:`approach_orientations`, computed once per option set (read-only arrays: the cache shares them)."""
     rotations, kinds = [], []
     down = np.array([0.0, 0.0, -1.0])
@@ -32,16 +34,18 @@ def _orientations(top_yaws: int, side_yaws: int, side_rolls: tuple[float, ...]) 
         y = np.array([math.cos(phi), math.sin(phi), 0.0])
         rotations.append(np.stack([np.cross(y, down), y, down], axis=1))
         kinds.append(0)
-    up = np.array([0.0, 0.0, 1.0])
-    for j in range(side_yaws):
-        theta = 2.0 * math.pi * j / side_yaws
-        a = np.array([math.cos(theta), math.sin(theta), 0.0])
-        h = np.cross(up, a)
-        for roll in side_rolls:
-            psi = math.radians(float(roll))
-            y = math.cos(psi) * h + math.sin(psi) * up
-            rotations.append(np.stack([np.cross(y, a), y, a], axis=1))
-            kinds.append(1)
+    for kind, pitch in [(1, 0.0)] + [(2, float(p)) for p in tilted_pitches]:
+        for j in range(side_yaws):
+            theta = 2.0 * math.pi * j / side_yaws
+            beta = math.radians(pitch)
+            a = np.array([math.cos(theta) * math.cos(beta), math.sin(theta) * math.cos(beta), -math.sin(beta)])
+            h = np.array([-math.sin(theta), math.cos(theta), 0.0])  # horizontal, across the approach
+            v = np.cross(a, h)  # across the approach in its vertical plane (straight up for a level approach)
+            for roll in side_rolls:
+                psi = math.radians(float(roll))
+                y = math.cos(psi) * h + math.sin(psi) * v
+                rotations.append(np.stack([np.cross(y, a), y, a], axis=1))
+                kinds.append(kind)
     rotations, kinds = np.asarray(rotations, dtype=np.float64), np.asarray(kinds, dtype=np.int8)
     rotations.flags.writeable = kinds.flags.writeable = False
     return rotations, kinds
@@ -60,6 +64,16 @@ def _anchors(union: np.ndarray, points_grid: np.ndarray | None) -> np.ndarray:
         flat = flat[~surface.ravel()[flat]]
         anchors.append(np.stack(np.unravel_index(flat, union.shape), axis=1).astype(np.float64) + 0.5)
     return np.concatenate(anchors, axis=0)
+
+
+def _anchor_weights(union: np.ndarray, anchors: np.ndarray, bias: float) -> np.ndarray:
+    """Draw probability of each anchor: ``density ** -bias`` (see ``GraspConfig.thin_anchor_bias``), summing to 1."""
+    if bias == 0.0:
+        return np.full(len(anchors), 1.0 / len(anchors))
+    density = ndimage.uniform_filter(union.astype(np.float32), size=5, mode="constant")
+    voxels = np.clip(np.floor(anchors).astype(np.int64), 0, union.shape[0] - 1)
+    weights = np.maximum(density[tuple(voxels.T)].astype(np.float64), 1.0 / 125) ** -bias
+    return weights / weights.sum()
 
 
 def _run_through(bits: PackedGrids, slices: np.ndarray, centre: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -114,14 +128,19 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     dims = VoxelDims.of(config, pose.voxel_size)
     points_grid = pose.camera_to_grid(points) if points is not None else None
     anchors = _anchors(union, points_grid)
-    rotations_all, kinds_all = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls))
+    rotations_all, kinds_all = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls),
+                                             tuple(config.tilted_pitches))
     if len(anchors) == 0:
         return GraspCandidates.empty()
     rng = np.random.default_rng(config.seed)
     total = len(anchors) * len(rotations_all)
     raw = int(min(total, math.ceil(config.oversample * config.max_candidates)))
-    pairs = np.arange(total) if raw == total else np.sort(rng.choice(total, size=raw, replace=False))
-    anchor_id, orient_id = np.divmod(pairs, len(rotations_all))
+    if raw == total:
+        anchor_id, orient_id = np.divmod(np.arange(total), len(rotations_all))
+    else:
+        anchor_id = rng.choice(len(anchors), size=raw, p=_anchor_weights(union, anchors, config.thin_anchor_bias))
+        orient_id = rng.integers(len(rotations_all), size=raw)
+        anchor_id, orient_id = np.divmod(np.unique(anchor_id * len(rotations_all) + orient_id), len(rotations_all))
     p = anchors[anchor_id]
     rot = rotations_all[orient_id]
     approach = rot[:, :, 2]
@@ -144,6 +163,16 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     going_down = az < -1e-6
     limit = (p[:, 2] + low0 - (support_z + dims.plane_clearance)) / np.where(going_down, -az, 1.0)
     t = np.where(going_down, np.minimum(t, limit), t)
+    # Shallow variants: fingertips only this far past the first contact (distinct from the deepest grasp).
+    depths = [t]
+    selves = [np.arange(len(t))]
+    for depth in config.shallow_depths:
+        shallow = first + depth / pose.voxel_size
+        distinct = shallow < t - 0.5
+        depths.append(shallow[distinct])
+        selves.append(np.flatnonzero(distinct))
+    pick = np.concatenate(selves)
+    p, rot, orient_id, t = p[pick], rot[pick], orient_id[pick], np.concatenate(depths)
     keep = t > 0.0
     p, rot, t, orient_id = p[keep], rot[keep], t[keep], orient_id[keep]
     origins = p + t[:, None] * rot[:, :, 2]

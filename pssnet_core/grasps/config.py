@@ -60,6 +60,15 @@ class GraspConfig:
         side_yaws: horizontal approach directions, evenly over 360 degrees; 0 = no side grasps.
         side_rolls: closing-axis angles (degrees) of side grasps about the approach: 0 = horizontal,
             90 = vertical.
+        tilted_pitches: approaches pitched this many degrees below the horizontal (0 < pitch < 90), at every
+            side yaw and with every side roll (0 = closing axis horizontal); () = none. They reach parts that a
+            level or a straight-down hand cannot, e.g. a handle under a shelf.
+        shallow_depths: besides the deepest grasp (palm one voxel short of the object), grasps whose fingertips
+            go only this far past the first contact (metres): a shallow pinch of a handle whose body a deep
+            grasp's fingertips would hit; () = deepest only.
+        thin_anchor_bias: anchors are drawn with probability proportional to ``density ** -thin_anchor_bias``,
+            density = occupied voxels of the completions' union within 2 voxels of the anchor. A thin part (a
+            handle) has few surface voxels, so uniform draws (0) rarely propose a grasp on it.
         clearance: free space left between each finger pad and the widest completion (metres).
         plane_clearance: every gripper part stays at least this far above the support plane (metres).
         oversample: raw (anchor, orientation) pairs generated per kept candidate, before de-duplication.
@@ -71,6 +80,9 @@ class GraspConfig:
     top_yaws: int = 8
     side_yaws: int = 12
     side_rolls: tuple[float, ...] = (0.0, 90.0)
+    tilted_pitches: tuple[float, ...] = (45.0,)
+    shallow_depths: tuple[float, ...] = (0.015,)
+    thin_anchor_bias: float = 1.0
     clearance: float = 0.005
     plane_clearance: float = 0.0
     oversample: float = 3.0
@@ -91,6 +103,15 @@ class GraspConfig:
         rolls = tuple(float(r) for r in self.side_rolls)
         if not all(math.isfinite(r) for r in rolls):
             raise GraspError(f"side_rolls must be finite degrees, got {self.side_rolls}")
+        pitches = tuple(float(p) for p in self.tilted_pitches)
+        if not all(math.isfinite(p) and 0.0 < p < 90.0 for p in pitches):
+            raise GraspError(f"tilted_pitches must be degrees in (0, 90), got {self.tilted_pitches}")
+        depths = tuple(float(d) for d in self.shallow_depths)
+        if not all(math.isfinite(d) and 0.0 < d < self.gripper.finger_length for d in depths):
+            raise GraspError(f"shallow_depths must be in (0, finger_length={self.gripper.finger_length}) m, "
+                             f"got {self.shallow_depths}")
+        if isinstance(self.thin_anchor_bias, bool) or not 0.0 <= float(self.thin_anchor_bias) <= 4.0:
+            raise GraspError(f"thin_anchor_bias must be in [0, 4], got {self.thin_anchor_bias!r}")
         if self.top_yaws == 0 and (self.side_yaws == 0 or not rolls):
             raise GraspError("no approach direction: set top_yaws > 0, or side_yaws > 0 with side_rolls")
         if not 0.0 <= self.clearance < self.gripper.max_opening / 2:

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from pssnet_core.grasps.config import GraspError
 
-KIND_NAMES = ("top", "side")
+KIND_NAMES = ("top", "side", "tilted")
 
 
 @dataclass
@@ -20,7 +20,7 @@ class GraspCandidates:
         origins: (K, 3) point between the fingertips.
         rotations: (K, 3, 3) columns are the gripper x, y (closing) and z (approach) axes in the grid frame.
         widths: (K,) opening needed, voxels.
-        kinds: (K,) int8 index into :data:`KIND_NAMES` ("top", "side").
+        kinds: (K,) int8 index into :data:`KIND_NAMES` ("top", "side", "tilted").
     """
 
     origins: np.ndarray
@@ -49,7 +49,7 @@ class GraspSet:
         scores: (K,) in [0, 1]: fraction of the completions the grasp holds for.
         holds: (K, S) whether grasp k holds for completion s.
         secondary: (K,) tie-break term in [0, 1] (see the package docstring).
-        kinds: (K,) "top" or "side".
+        kinds: (K,) "top", "side" or "tilted".
         grid: the same grasps in grid coordinates.
         support_z: height of the support plane in grid coordinates (voxels).
         voxel_size: voxel edge (metres).
@@ -85,6 +85,16 @@ class GraspSet:
             raise GraspError(f"k must be >= 0, got {k}")
         keep = np.flatnonzero(self.scores >= min_score)[:k]
         return self.subset(keep)
+
+    def confident_choice(self, min_score: float = 0.9) -> int | None:
+        """The risk-averse choice: among the grasps that hold for at least ``min_score`` of the completions'
+        weight, the one that grips most firmly (largest secondary term); None when no grasp is that sure, i.e.
+        the completions disagree about every grasp (look again from elsewhere, or accept the risk that
+        ``scores[0]`` states)."""
+        if not 0.0 < min_score <= 1.0:
+            raise GraspError(f"min_score must be in (0, 1], got {min_score}")
+        sure = np.flatnonzero(self.scores >= min_score - 1e-6)
+        return int(sure[np.argmax(self.secondary[sure])]) if len(sure) else None
 
     def position_quaternions(self) -> tuple[np.ndarray, np.ndarray]:
         """(K, 3) positions and (K, 4) unit quaternions (x, y, z, w) of :attr:`poses`."""

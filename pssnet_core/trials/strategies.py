@@ -7,7 +7,10 @@ knows of its surroundings: the scenario's clutter (the ``allowed`` filter) and t
 support plane, instead of the node's estimate from the view, which may lie a voxel below the table). It
 takes the best-ranked grasp unless that holds for none of its shapes (then it has none):
 
-- ``pssnet``: PSSNet's samples; a grasp's score is the fraction of the samples it holds for (the product);
+- ``pssnet``: PSSNet's samples (the node's default sampler); a grasp's score is the weighted fraction of the samples it
+  holds for (the product);
+- ``pssnet_confident``: the same grasps, chosen risk-averse (:meth:`GraspSet.confident_choice`: the firmest
+  grip among those holding for >= 90 % of the samples' weight, else no grasp);
 - ``vae``: the VAE's samples, scored the same way;
 - ``one_completion``: PSSNet's posterior mean alone (``decode(mu) > 0.5``), one shape;
 - ``observed``: the observed voxels alone (the known-occupied grid);
@@ -88,12 +91,14 @@ class Strategist:
         view = scene.view
         return pipeline.run(view.depth, view.mask, view.intrinsics, compute_grasps=False)
 
-    def _plan(self, occupancy: np.ndarray, result: PipelineResult, scene: TrialScene, seed: int) -> GraspSet:
+    def _plan(self, occupancy: np.ndarray, result: PipelineResult, scene: TrialScene, seed: int,
+              weights: np.ndarray | None = None) -> GraspSet:
+        """Ranked grasps on ``occupancy``; ``weights``: the sampler's weights of its samples (None: equal)."""
         observation = result.observation
         allowed = allowed_by_clutter(scene, observation.pose, self.grasps.gripper, self.physics, self.clutter_margin)
         return plan_grasps(occupancy, observation.pose, observation.points, replace(self.grasps, seed=seed),
                            known_occupied=observation.known_occupied, allowed=allowed,
-                           support_z=scene.table_height(observation.pose))
+                           support_z=scene.table_height(observation.pose), weights=weights)
 
     @staticmethod
     def _choice(name: str, grasps: GraspSet, index: int | None, camera_pose: np.ndarray) -> Choice:
@@ -114,11 +119,13 @@ class Strategist:
         observation = result.observation
         choices: dict[str, Choice] = {}
         pssnet_grasps = None
-        if "pssnet" in strategies or "random" in strategies:
-            pssnet_grasps = self._plan(result.occupancy, result, scene, seed)
+        if {"pssnet", "pssnet_confident", "random"} & set(strategies):
+            pssnet_grasps = self._plan(result.occupancy, result, scene, seed, result.weights)
         for name in strategies:
             if name == "pssnet":
                 choices[name] = self._choice(name, pssnet_grasps, 0, camera)
+            elif name == "pssnet_confident":
+                choices[name] = self._choice(name, pssnet_grasps, pssnet_grasps.confident_choice(), camera)
             elif name == "random":
                 holding = np.flatnonzero(pssnet_grasps.scores > 0.0)
                 rng = np.random.default_rng([seed, zlib.crc32(b"random")])
@@ -126,7 +133,7 @@ class Strategist:
                 choices[name] = self._choice(name, pssnet_grasps, pick, camera)
             elif name == "vae":
                 vae = self._complete("vae", scene, seed)
-                choices[name] = self._choice(name, self._plan(vae.occupancy, vae, scene, seed), 0, camera)
+                choices[name] = self._choice(name, self._plan(vae.occupancy, vae, scene, seed, vae.weights), 0, camera)
             else:
                 shapes = {"one_completion": lambda: posterior_mean(self.pssnet, result),
                           "observed": lambda: observation.known_occupied[None],
