@@ -18,6 +18,7 @@ from pssnet_core.grasps import (
     GraspConfig,
     GraspError,
     GripperConfig,
+    check_grasps,
     estimate_support_height,
     generate_candidates,
     matrix_to_position_quaternion,
@@ -365,3 +366,18 @@ def test_confident_choice_grips_firmest_among_the_sure_grasps_or_abstains():
     assert dataclasses.replace(grasps, scores=np.array([0.8, 0.7, 0.5])).confident_choice(0.9) is None
     with pytest.raises(GraspError):
         grasps.confident_choice(0.0)
+
+
+def test_lever_is_the_weights_moment_across_the_closing_axis():
+    occ = bar(1)  # centroid (12.5, 16, 11) in grid coordinates
+    approach = np.array([-1.0, 0.0, 0.0])  # a side grasp from +x, its closing region centred 6 voxels off in x
+
+    def lever(closing: np.ndarray) -> float:
+        rot = np.stack([np.cross(closing, approach), closing, approach], axis=1)
+        fl = CONFIG.gripper.finger_length / VOXEL
+        origin = np.array([18.5, 16.0, 11.0]) + 0.5 * fl * approach  # closing region's middle at x = 18.5
+        candidates = GraspCandidates(origin[None], rot[None], np.array([4.0]), np.ones(1, np.int8))
+        return float(check_grasps(candidates, occ, identity_pose(), 2.0, CONFIG).lever[0, 0])
+
+    assert lever(np.array([0.0, 1.0, 0.0])) == pytest.approx(0.0, abs=1e-9)  # the moment is about the closing axis
+    assert lever(np.array([0.0, 0.0, 1.0])) == pytest.approx(6.0)  # pinched from above and below: all across

@@ -32,14 +32,19 @@ occupied voxel of s, i.e. the part overlaps the occupied voxel cubes to within t
 All completions are tested at once: the S occupancy grids are packed into one bit word per voxel (bit s =
 completion s), so each sample point costs one gather and a bitwise OR, whatever S.
 
-Score = fraction of completions the grasp holds for. Ties are broken by the *secondary* term in [0, 1]:
-``0.8 * pad contact + 0.2 * opening margin``. Pad contact is the mean, over the completions the grasp
-holds for, of the fraction of the two finger pads (finger-width x finger-length faces, sampled on the
-lattice) that touch the object when the fingers close on it: a pad cell touches when the object along its
+Score = (weighted) fraction of completions the grasp holds for. Ties are broken by the *secondary* term in
+[0, 1]: ``0.6 * pad contact + 0.2 * opening margin + 0.2 * balance``. Pad contact is the mean, over the
+completions the grasp holds for, of the fraction of the two finger pads (finger-width x finger-length faces,
+sampled on the lattice) that touch the object when the fingers close on it: a pad cell touches when the object along its
 line across the closing region lies within one voxel of the pad's first contact. Deep grasps on faces
 square to the closing axis touch with the whole pad; fingertip grasps, and grasps across a box's corner or
 on a slanted face, touch with a small part. Opening margin is ``(max_opening - width) / max_opening``:
-spare opening tolerates pose error. Contact normals are not checked otherwise (voxel normals are coarse).
+spare opening tolerates pose error. Balance is the mean over the same completions of
+``1 - lever / max_opening`` (clipped to [0, 1]), lever = the arm of the completion's weight (at its centroid)
+about the grasp, the part of the moment that lies across the closing axis: two pads resist a moment about the
+closing axis by friction over both pads, but one across it only by pressing unevenly, which a small contact
+cannot (in the grasp trials every grasp pinching a mug's handle from above and below slipped, 9 of 9, where
+pinches across the handle held). Contact normals are not checked otherwise (voxel normals are coarse).
 
 Candidates (:func:`generate_candidates`, module ``candidates``). Anchors are the surface voxels of the union
 of the completions plus the observed points, drawn with a bias towards thin parts (``thin_anchor_bias``: a

@@ -78,7 +78,7 @@ class GraspConfig:
     gripper: GripperConfig = field(default_factory=GripperConfig)
     max_candidates: int = 500
     top_yaws: int = 8
-    side_yaws: int = 12
+    side_yaws: int = 24
     side_rolls: tuple[float, ...] = (0.0, 90.0)
     tilted_pitches: tuple[float, ...] = (45.0,)
     shallow_depths: tuple[float, ...] = (0.015,)

@@ -36,6 +36,10 @@ class GraspChecks:
         finger_hit: (K, S) a finger overlaps the completion.
         palm_hit: (K, S) the palm overlaps the completion.
         coverage: (K, S) fraction of the finger pads touching the object when the fingers close (0 if none).
+        lever: (K, S) the arm (voxels) of completion s's weight about the grasp, the part of its moment that lies
+            across the closing axis: the pads can resist that part only by pressing unevenly, which a small
+            contact (a pinch of a handle from above and below) cannot. A moment about the closing axis itself is
+            taken by friction over both pads.
     """
 
     fits: np.ndarray
@@ -44,6 +48,7 @@ class GraspChecks:
     finger_hit: np.ndarray
     palm_hit: np.ndarray
     coverage: np.ndarray
+    lever: np.ndarray
 
     @property
     def holds(self) -> np.ndarray:
@@ -72,7 +77,7 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     k, s = len(candidates), bits.num
     if k == 0:
         none = np.zeros((0, s), dtype=bool)
-        return GraspChecks(np.zeros(0, bool), np.zeros(0, bool), none, none, none, np.zeros((0, s)))
+        return GraspChecks(np.zeros(0, bool), np.zeros(0, bool), none, none, none, np.zeros((0, s)), np.zeros((0, s)))
     dims = VoxelDims.of(config, pose.voxel_size)
     fl, fw, ft, wmax = dims.finger_length, dims.finger_width, dims.finger_thickness, dims.max_opening
     origins = np.asarray(candidates.origins, dtype=np.float64)
@@ -115,7 +120,22 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
                                   np.array([fw / 2, wmax / 2 + ft, dims.palm_depth / 2]),
                                   (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0)),
                                   keep=()))
-    return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage)
+    return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage, _levers(bits, origins, rot, fl))
+
+
+def _levers(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, finger_length: float) -> np.ndarray:
+    """(K, S) :attr:`GraspChecks.lever`: each completion's centroid stands for its centre of mass (uniform density)."""
+    occupied = bits.unpack(bits.data)  # (P^3, S) over the padded grid
+    p = bits.padded
+    ijk = np.stack(np.unravel_index(np.arange(p**3), (p, p, p)), axis=1).astype(np.float64) - 0.5  # voxel centres
+    counts = occupied.sum(axis=0)
+    centroids = (occupied.T.astype(np.float64) @ ijk) / np.maximum(counts, 1)[:, None]  # (S, 3) grid coordinates
+    centre = origins - 0.5 * finger_length * rot[:, :, 2]  # middle of the closing region
+    arm = centroids[None, :, :] - centre[:, None, :]  # (K, S, 3)
+    moment = np.stack([-arm[..., 1], arm[..., 0], np.zeros(arm.shape[:2])], axis=2)  # arm x (0, 0, -1)
+    closing = rot[:, None, :, 1]
+    across = moment - np.sum(moment * closing, axis=2, keepdims=True) * closing
+    return np.where(counts[None, :] > 0, np.linalg.norm(across, axis=2), 0.0)
 
 
 def score_grasps(candidates: GraspCandidates, occupancy: np.ndarray, pose: GridPose, support_z: float,
@@ -142,7 +162,11 @@ def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config
     """The (K, S) holds of ``checks`` and the secondary tie-break term (K,) of :func:`score_grasps`."""
     holds = checks.holds
     n_held = holds.sum(axis=1)
-    coverage = np.where(n_held > 0, (checks.coverage * holds).sum(axis=1) / np.maximum(n_held, 1), 0.0)
+
+    def mean_over_held(values: np.ndarray) -> np.ndarray:
+        return np.where(n_held > 0, (values * holds).sum(axis=1) / np.maximum(n_held, 1), 0.0)
+
     wmax = config.gripper.max_opening / voxel_size
     margin = np.clip((wmax - np.asarray(candidates.widths, dtype=np.float64)) / wmax, 0.0, 1.0)
-    return holds, 0.8 * coverage + 0.2 * margin
+    balance = mean_over_held(np.clip(1.0 - checks.lever / wmax, 0.0, 1.0))
+    return holds, 0.6 * mean_over_held(checks.coverage) + 0.2 * margin + 0.2 * balance
