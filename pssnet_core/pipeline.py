@@ -234,11 +234,13 @@ class CompletionPipeline:
                         device: str = "cpu", threads: int | None = None,
                         precision: str = "auto") -> CompletionPipeline:
         """Loads a checkpoint (None = the shipped default) for ``Completer`` with ``device``, ``threads`` and
-        ``precision`` ("auto", "fp32" or "bf16"); raises ``CheckpointError`` with the reason (a ValueError, as
-        is a bad device or precision)."""
+        ``precision`` ("auto", "fp32" or "bf16"), checked for serving (integrity record required, self-test that
+        refuses a model that empties or fills the grid); raises ``CheckpointError`` with the reason (a
+        ValueError, as is a bad device or precision)."""
         from pssnet_core.inference import Completer
 
-        return cls(Completer.from_checkpoint(path, device=device, threads=threads, precision=precision), config)
+        return cls(Completer.from_checkpoint(path, device=device, threads=threads, precision=precision,
+                                             for_serving=True), config)
 
     @property
     def grid_size(self) -> int:
@@ -355,6 +357,7 @@ class CompletionPipeline:
 
         Raises:
             PipelineInputError: the input cannot be processed (the message says why).
+            IntegrityError: a sample is empty or fills the grid (a broken model; a ValueError too).
         """
         t0 = time.perf_counter()
         config = self._config  # one consistent snapshot even if the node updates parameters meanwhile
@@ -373,6 +376,7 @@ class CompletionPipeline:
             raise PipelineInputError(str(error)) from error
         t1 = time.perf_counter()
         from pssnet_core.inference import CompletionInputError
+        from pssnet_core.models.integrity import check_samples
 
         with self._lock:
             seed = config.seed if config.seed >= 0 else int(self._seed_rng.integers(0, 2**31 - 1))
@@ -381,6 +385,7 @@ class CompletionPipeline:
                                                             box_temperature=config.box_temperature or None)
             except CompletionInputError as error:
                 raise PipelineInputError(str(error)) from error
+        check_samples(completion.occupancy)  # an empty or full sample is a broken model, never a result
         weights = getattr(completion, "weights", None)  # the checked sampler's; the posterior's weigh alike
         if weights is None:
             weights = np.full(n, 1.0 / n, np.float32)
