@@ -166,7 +166,7 @@ REQUEST_FAMILIES: dict[str, tuple[str, Mutation]] = {
     "depth_extended": (REFUSAL, lambda p, rng: edit(p, "depth", extend=int(rng.integers(1, 4096)))),
     "depth_empty_data": (REFUSAL, lambda p, rng: edit(p, "depth", truncate=0)),
     "depth_huge_dims": (REFUSAL, lambda p, rng: edit(p, "depth", height=2**31, width=2**31, step=2**31)),
-    "depth_byte_order_flag": (EITHER, lambda p, rng: edit(p, "depth", is_bigendian=1)),
+    "depth_byte_order_flag": (REFUSAL, lambda p, rng: edit(p, "depth", is_bigendian=1)),
     "depth_random_bytes": (EITHER, lambda p, rng: edit(p, "depth", random_bytes=True)),
     # depth values
     "depth_all_nan": (REFUSAL, lambda p, rng: with_depth(p, np.full_like(p.depth, np.nan))),

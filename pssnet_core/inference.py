@@ -32,7 +32,7 @@ from pssnet_core.models.base import (
     check_box_temperature,
     resolve_precision,
 )
-from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint
+from pssnet_core.models.checkpoint import CheckpointError, load_verified
 from pssnet_core.models.config import ModelConfig
 from pssnet_core.models.networks import onednn_runs
 
@@ -113,11 +113,15 @@ class Completer:
     @classmethod
     def from_checkpoint(cls, path: str | Path | None = None, device: str | torch.device = "cpu",
                         threads: int | None = None, precision: str = "auto",
-                        box_temperature: float | None = None) -> Completer:
+                        box_temperature: float | None = None, for_serving: bool = False) -> Completer:
         """Loads a checkpoint (``weights_only``); ``path`` None loads the shipped default 32^3 PSSNet.
 
+        Its weights are checked and its self-test run (:func:`pssnet_core.models.checkpoint.load_verified`;
+        ``for_serving`` adds the checks that only a model that completes shapes passes); the self-test's result
+        is ``info["self_test"]``.
+
         Raises:
-            CheckpointError: the file is missing, corrupt or not a model checkpoint.
+            CheckpointError: the file is missing, corrupt or not a model checkpoint, or fails its self-test.
         """
         if path is None:
             path = DEFAULT_CHECKPOINT
@@ -126,8 +130,10 @@ class Completer:
                     f"the default model {path} is missing from this installation. Train one with "
                     "`pssnet train --model pssnet --data DATA --out runs/pssnet32`, then "
                     f"`pssnet export-model runs/pssnet32/best.pt {path}`, or pass a checkpoint path")
-        model, config, extra = load_checkpoint(path, map_location="cpu")
+        loaded = load_verified(path, map_location="cpu", for_serving=for_serving)
+        model, config, extra = loaded.model, loaded.config, loaded.extra
         extra["path"] = str(path)
+        extra["self_test"] = loaded.self_test
         if box_temperature is None:  # the temperature calibrated with the model, else the trained posterior
             box_temperature = float(extra.get("box_temperature", 1.0))
         return cls(model, config, device=device, threads=threads, precision=precision, info=extra,

@@ -30,6 +30,7 @@ from pssnet_core.geometry import (
     check_intrinsics,
     check_object_scale,
     observe,
+    valid_depth,
 )
 from pssnet_core.grasps import GraspConfig, GraspError, GraspSet, plan_grasps
 
@@ -39,6 +40,9 @@ if TYPE_CHECKING:  # torch is imported only when a model is loaded: `completion_
 
 #: voxel size of the grid when a checkpoint does not record the one it was trained with (GridConfig default)
 FALLBACK_VOXEL_SIZE = GridConfig().voxel_size
+#: accepted lengths of ``up_vector``: only its direction counts, but a length that over- or underflows when
+#: squared normalises to [0, 0, 0] or NaN and breaks every call
+UP_VECTOR_LENGTH = (1e-6, 1e6)
 
 
 def up_vector_warning(tilt_deg: float, limit_deg: float) -> str:
@@ -74,6 +78,9 @@ class PipelineConfig:
         max_depth: readings farther than this are "no reading" (metres).
         min_mask_pixels: masks with fewer pixels are rejected.
         min_valid_points: fewer masked pixels with a valid depth is an error.
+        min_valid_fraction: a smaller share of the masked pixels with a valid depth is an error: a real depth
+            camera reads most of an object it segments; a mask mostly over holes, or a depth image decoded wrongly,
+            leaves a few scattered readings to complete from.
         min_object_voxels: an observed object spanning fewer voxels than this along every grid axis is
             implausibly small (wrong depth units or intrinsics); one larger than the grid is refused too.
         grasps: gripper, candidate and scoring options (:class:`pssnet_core.grasps.GraspConfig`; its seed is
@@ -107,6 +114,7 @@ class PipelineConfig:
     max_depth: float = 5.0
     min_mask_pixels: int = 50
     min_valid_points: int = 20
+    min_valid_fraction: float = 0.25
     min_object_voxels: float = 2.0
     grasps: GraspConfig = field(default_factory=GraspConfig)
     grasp_top_k: int = 10
@@ -128,10 +136,15 @@ class PipelineConfig:
         if self.voxel_size < 0:
             raise ValueError(f"voxel_size must be >= 0 (0 = the model's), got {self.voxel_size}")
         up = np.asarray(self.up_vector, dtype=np.float64)
-        if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-9:
-            raise ValueError(f"up_vector must be 3 finite numbers, not all zero, got {list(self.up_vector)}")
+        with np.errstate(over="ignore", under="ignore"):  # [1e200, 1e200, 0]: its length overflows to inf
+            length = float(np.linalg.norm(up)) if up.shape == (3,) else math.nan
+        if not UP_VECTOR_LENGTH[0] <= length <= UP_VECTOR_LENGTH[1]:
+            raise ValueError(f"up_vector must be 3 finite numbers of length {UP_VECTOR_LENGTH[0]:g} to "
+                             f"{UP_VECTOR_LENGTH[1]:g}, got {list(self.up_vector)}")
         if self.min_mask_pixels < 1 or self.min_valid_points < 1:
             raise ValueError("min_mask_pixels and min_valid_points must be >= 1")
+        if not 0.0 <= self.min_valid_fraction <= 1.0:
+            raise ValueError(f"min_valid_fraction must lie in [0, 1], got {self.min_valid_fraction}")
         if not self.min_object_voxels >= 0:
             raise ValueError(f"min_object_voxels must be >= 0, got {self.min_object_voxels}")
         if not 0.0 <= self.up_check_deg <= 90.0:
@@ -234,11 +247,13 @@ class CompletionPipeline:
                         device: str = "cpu", threads: int | None = None,
                         precision: str = "auto") -> CompletionPipeline:
         """Loads a checkpoint (None = the shipped default) for ``Completer`` with ``device``, ``threads`` and
-        ``precision`` ("auto", "fp32" or "bf16"); raises ``CheckpointError`` with the reason (a ValueError, as
-        is a bad device or precision)."""
+        ``precision`` ("auto", "fp32" or "bf16"), checked for serving (integrity record required, self-test that
+        refuses a model that empties or fills the grid); raises ``CheckpointError`` with the reason (a
+        ValueError, as is a bad device or precision)."""
         from pssnet_core.inference import Completer
 
-        return cls(Completer.from_checkpoint(path, device=device, threads=threads, precision=precision), config)
+        return cls(Completer.from_checkpoint(path, device=device, threads=threads, precision=precision,
+                                             for_serving=True), config)
 
     @property
     def grid_size(self) -> int:
@@ -340,6 +355,12 @@ class CompletionPipeline:
         object_depth = depth[mask != 0]
         if not np.isfinite(object_depth).any():
             raise PipelineInputError("depth has no finite reading inside the mask (all NaN/Inf)")
+        valid = int(np.count_nonzero(valid_depth(object_depth, config.min_depth, config.max_depth)))
+        # Fewer than min_valid_points: observe() says so, with that limit.
+        if config.min_valid_points <= valid < config.min_valid_fraction * mask_pixels:
+            raise PipelineInputError(f"only {valid} of the {mask_pixels} masked pixels ({valid / mask_pixels:.0%}) "
+                                     f"have a depth in [{config.min_depth}, {config.max_depth}] m; need "
+                                     f"{config.min_valid_fraction:.0%} (min_valid_fraction)")
         return n
 
     def run(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
@@ -355,6 +376,7 @@ class CompletionPipeline:
 
         Raises:
             PipelineInputError: the input cannot be processed (the message says why).
+            IntegrityError: a sample is empty or fills the grid (a broken model; a ValueError too).
         """
         t0 = time.perf_counter()
         config = self._config  # one consistent snapshot even if the node updates parameters meanwhile
@@ -373,6 +395,7 @@ class CompletionPipeline:
             raise PipelineInputError(str(error)) from error
         t1 = time.perf_counter()
         from pssnet_core.inference import CompletionInputError
+        from pssnet_core.models.integrity import check_samples
 
         with self._lock:
             seed = config.seed if config.seed >= 0 else int(self._seed_rng.integers(0, 2**31 - 1))
@@ -381,6 +404,7 @@ class CompletionPipeline:
                                                             box_temperature=config.box_temperature or None)
             except CompletionInputError as error:
                 raise PipelineInputError(str(error)) from error
+        check_samples(completion.occupancy)  # an empty or full sample is a broken model, never a result
         weights = getattr(completion, "weights", None)  # the checked sampler's; the posterior's weigh alike
         if weights is None:
             weights = np.full(n, 1.0 / n, np.float32)

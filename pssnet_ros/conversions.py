@@ -1,7 +1,8 @@
 """sensor_msgs <-> numpy without cv_bridge or sensor_msgs_py (neither exists as a wheel).
 
 Images: 32FC1 (metres), 16UC1 (millimetres, or any unit through ``depth_scale``), mono8 and 8UC1, in either
-byte order (``is_bigendian``) and with row padding (``step`` larger than ``width * bytes_per_pixel``).
+byte order (``is_bigendian``) and with row padding (``step`` larger than ``width * bytes_per_pixel``). A depth
+image whose data contradict its byte-order flag is refused (:func:`byte_order_mismatch`).
 Point clouds: (M, 3) points plus an optional per-point ``sample`` index, as x, y, z float32 (+ uint32
 ``sample``), and back from any PointCloud2 that has float32/float64 x, y, z fields.
 
@@ -40,6 +41,10 @@ UINT32_MAX = 2**32 - 1
 MAX_POINT_STEP = 2**31 - 1
 #: how far R R^T of a pose may differ from the identity (float32 poses from other nodes pass)
 ROTATION_TOLERANCE = 1e-5
+#: depths (metres) a 32FC1 reading can have: what the byte-order check counts as readable
+PLAUSIBLE_METRES = (1e-3, 1e3)
+#: fewest readings (or neighbouring pairs) on which the byte-order check decides
+MIN_BYTE_ORDER_EVIDENCE = 16
 
 _POINTFIELD_DTYPES: dict[int, str] = {
     PointField.INT8: "i1", PointField.UINT8: "u1", PointField.INT16: "i2", PointField.UINT16: "u2",
@@ -84,16 +89,64 @@ def image_to_numpy(msg: Image, allowed: tuple[str, ...] | None = None, name: str
     return np.ascontiguousarray(raw).view(dtype).reshape(height, width).astype(dtype.newbyteorder("="))
 
 
+def byte_order_mismatch(depth: np.ndarray) -> str:
+    """Why ``depth`` (decoded in the byte order its message claims) reads right only in the other order, or "".
+
+    A real camera's depth is plausible in its own byte order and garbage in the other, so a wrong
+    ``is_bigendian`` flag shows without knowing the scene:
+
+    - 32FC1: of the readings (non-zero, not NaN in either order), fewer than half are metres in
+      [``PLAUSIBLE_METRES``] while at least 90 % are in the other order;
+    - 16-bit: depth is smooth, so neighbouring readings differ in their low byte; read in the wrong order that
+      difference lands in the high byte. Refused when the median difference of neighbouring unequal readings is
+      more than 16x smaller in the other order.
+
+    The rule never refuses both orders of the same bytes, and decides nothing on fewer than
+    ``MIN_BYTE_ORDER_EVIDENCE`` readings (or pairs).
+    """
+    swapped = depth.byteswap()  # what the same bytes read in the other order
+    if depth.dtype.kind == "f":
+        with np.errstate(invalid="ignore"):
+            readings = (depth != 0) & ~np.isnan(depth) & ~np.isnan(swapped)
+            if readings.sum() < MIN_BYTE_ORDER_EVIDENCE:
+                return ""
+            low, high = PLAUSIBLE_METRES
+            share = float(((depth[readings] >= low) & (depth[readings] <= high)).mean())
+            other = float(((swapped[readings] >= low) & (swapped[readings] <= high)).mean())
+        if share < 0.5 and other >= 0.9:
+            return (f"{share:.0%} of its readings are depths in [{low:g}, {high:g}] m as flagged, {other:.0%} in the "
+                    "other byte order")
+        return ""
+    left, right = depth[:, :-1].astype(np.int64), depth[:, 1:].astype(np.int64)
+    pairs = (left != 0) & (right != 0) & (left != right)
+    if pairs.sum() < MIN_BYTE_ORDER_EVIDENCE:
+        return ""
+    step = float(np.median(np.abs(left - right)[pairs]))
+    other = float(np.median(np.abs(swapped[:, :-1].astype(np.int64) - swapped[:, 1:].astype(np.int64))[pairs]))
+    if other * 16 < step:
+        return (f"neighbouring readings differ by {step:g} units (median) as flagged, by {other:g} in the other "
+                "byte order")
+    return ""
+
+
 def depth_to_metres(msg: Image, depth_scale: float = 0.001) -> np.ndarray:
     """Depth image -> (H, W) float32 metres; 0 or NaN stays "no reading".
 
     Args:
         msg: 32FC1 (metres) or 16UC1/mono16 (integer units).
         depth_scale: metres per unit of a 16-bit image (0.001 for millimetres).
+
+    Raises:
+        ConversionError: besides the malformed images of :func:`image_to_numpy`, a byte-order flag that
+            contradicts the data (:func:`byte_order_mismatch`): such depth would be garbage.
     """
     if not 0 < depth_scale < float("inf"):
         raise ConversionError(f"depth_scale must be positive and finite, got {depth_scale}")
     depth = image_to_numpy(msg, DEPTH_ENCODINGS, "depth")
+    if reason := byte_order_mismatch(depth):
+        order = "big" if msg.is_bigendian else "little"
+        raise ConversionError(f"depth is flagged {order}-endian (is_bigendian={int(bool(msg.is_bigendian))}) but "
+                              f"reads as the other byte order: {reason}; fix the publisher's is_bigendian")
     if depth.dtype == np.float32:
         return depth
     return depth.astype(np.float32) * np.float32(depth_scale)

@@ -22,7 +22,7 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
 from pssnet_core.grasps import GraspConfig, GripperConfig
-from pssnet_core.pipeline import PipelineConfig
+from pssnet_core.pipeline import UP_VECTOR_LENGTH, PipelineConfig
 
 INT32_MAX = 2**31 - 1
 _DEFAULT_PIPELINE = PipelineConfig()
@@ -157,7 +157,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("bottom_margin", "grid placement: voxels below the lowest observed point", 0.0, 16.0,
               field="bottom_margin", constraints="< grid size / 2"),
     ParamSpec("up_vector", "up (against gravity) in the camera optical frame; [0, -1, 0] for a level camera",
-              field="up_vector", constraints="3 finite numbers, not all zero"),
+              field="up_vector",
+              constraints=f"3 finite numbers, length {UP_VECTOR_LENGTH[0]:g} to {UP_VECTOR_LENGTH[1]:g}"),
     ParamSpec("estimate_up", "estimate up from the support plane around the object (RANSAC); up_vector is then "
               "the prior that orients it", field="estimate_up"),
     ParamSpec("up_check_deg", "with estimate_up false: warn when the support plane around the object is tilted "
@@ -174,6 +175,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("min_mask_pixels", "masks with fewer pixels are rejected", 1, 10_000_000, field="min_mask_pixels"),
     ParamSpec("min_valid_points", "fewer masked pixels with valid depth are rejected", 1, 10_000_000,
               field="min_valid_points"),
+    ParamSpec("min_valid_fraction", "a smaller share of the masked pixels with valid depth is rejected", 0.0, 1.0,
+              field="min_valid_fraction"),
     ParamSpec("sync_tolerance", "largest stamp difference of a synchronised depth/mask/camera_info set, seconds",
               0.0, 10.0, default=0.01),
     ParamSpec("max_input_age", "sets older than this (node clock minus stamp) are stale: dropped in continuous "
@@ -246,7 +249,7 @@ def _check_one(spec: ParamSpec, value: Any) -> str | None:
             return f"{name} must be a list of 3 numbers, got {value!r}"
         if len(vector) != 3 or not all(math.isfinite(v) for v in vector) or not any(vector):
             return f"{name} must be 3 finite numbers, not all zero, got {list(value)}"
-        return None
+        return None  # its length is the pipeline config's check
     expected = {ParameterType.PARAMETER_BOOL: (bool,), ParameterType.PARAMETER_INTEGER: (int,),
                 ParameterType.PARAMETER_DOUBLE: (float, int), ParameterType.PARAMETER_STRING: (str,)}[spec.ros_type]
     if not isinstance(value, expected) or (spec.ros_type != ParameterType.PARAMETER_BOOL and isinstance(value, bool)):

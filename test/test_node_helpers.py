@@ -18,6 +18,7 @@ from pssnet_core.data.scenes import RenderedView, render_view
 from pssnet_core.inference import DEFAULT_CHECKPOINT
 from pssnet_core.models import build_model, default_config
 from pssnet_core.models.checkpoint import save_checkpoint
+from pssnet_core.models.integrity import canonical_input
 from pssnet_core.shapes import make_shape
 from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env
 
@@ -37,11 +38,19 @@ def render_mug_scene(seed: int = 0, distance: float = 0.6, tilt_deg: float = 30.
 
 
 def tiny_checkpoint(path: Path, grid_size: int = 32, seed: int = 0) -> Path:
-    """A small random PSSNet checkpoint: exercises the plumbing, completes nothing sensible."""
+    """A small random PSSNet checkpoint: exercises the plumbing, completes nothing sensible.
+
+    Untrained, so its output logits hardly depend on the input; its output bias is set so that about 15 % of
+    the canonical observation's grid is occupied: every output carries points, and the serving checks, which
+    refuse a model that empties or fills the grid (as a randomly initialised full-size PSSNet does), accept it.
+    """
     torch.manual_seed(seed)
-    model = build_model(default_config("pssnet", grid_size=grid_size, **TINY))
-    with torch.no_grad():  # about half the voxels occupied, so that every output carries points
+    model = build_model(default_config("pssnet", grid_size=grid_size, **TINY)).eval()
+    canonical = torch.from_numpy(canonical_input(grid_size).astype(np.float32))[None]
+    with torch.no_grad():
         model.decoder.deconv[-1].bias.fill_(0.0)
+        logits = model.reconstruct(canonical).flatten()
+        model.decoder.deconv[-1].bias.fill_(-float(torch.quantile(logits, 0.85)))
     return save_checkpoint(path, model, inference_only=True)
 
 

@@ -117,6 +117,9 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
     assert get_state(ros) == "active"
     scene = render_mug_scene(seed=3)  # a camera pitched 30 degrees: the true up_vector is not the default
     assert ros.set_parameters(up_vector=[float(v) for v in scene.up])[0].successful
+    # Finite, but its length overflows: refused at set time, the node keeps the value above (checked below).
+    overflowing = ros.set_parameters(up_vector=[1e200, 1e200, 0.0])[0]
+    assert not overflowing.successful and "up_vector must be 3 finite numbers of length" in overflowing.reason
     assert service.wait_for_service(timeout_sec=30)
     response = ros.call(service, make_request(scene, stamped_header(5)), timeout=120)
     assert response.success, response.message

@@ -104,6 +104,9 @@ def bad_inputs(scene):
     nan_depth = depth.copy()
     nan_depth[mask > 0] = np.nan
     zero_depth = np.where(mask > 0, 0.0, depth).astype(np.float32)
+    holes = np.flatnonzero(mask > 0)[np.arange((mask > 0).sum()) % 5 != 0]  # 4 in 5 masked pixels without a reading
+    sparse_depth = depth.copy()
+    sparse_depth.reshape(-1)[holes] = 0.0
     return [
         ("empty mask", (depth, np.zeros_like(mask), intr, None),
          r"mask is empty: 0 pixels marked, need at least 50 \(min_mask_pixels\)"),
@@ -114,6 +117,8 @@ def bad_inputs(scene):
         ("nan depth", (nan_depth, mask, intr, None), r"depth has no finite reading inside the mask \(all NaN/Inf\)"),
         ("no valid depth", (zero_depth, mask, intr, None),
          r"only 0 of \d+ masked pixels have a valid depth in \[0.1, 5.0\] m \(need at least 20\)"),
+        ("few valid depths", (sparse_depth, mask, intr, None),
+         r"only \d+ of the \d+ masked pixels \(20%\) have a depth in \[0.1, 5.0\] m; need 25% \(min_valid_fraction\)"),
         ("absurd samples", (depth, mask, intr, 4_000_000_000),
          r"num_samples 4000000000 is out of range: ask for 1..100 \(max_num_samples\)"),
         ("integer depth", (depth.astype(np.uint16), mask, intr, None), "depth must be float metres, got dtype uint16"),
@@ -128,6 +133,8 @@ def test_bad_input_raises_exact_messages(scene):
         assert re.search(message, str(info.value)), f"{name}: {info.value}"
     looking_down = PipelineConfig(up_vector=(0.0, 0.0, -1.0))
     pipeline.config = looking_down
+    with pytest.raises(ValueError, match=r"up_vector must be 3 finite numbers of length 1e-06 to 1e\+06, got \[1e"):
+        PipelineConfig(up_vector=(1e200, 1e200, 0.0))  # finite, but its length overflows: it would normalise to 0
     with pytest.raises(PipelineInputError, match="camera looks .almost. straight along the up vector"):
         pipeline.run(scene.depth, scene.mask, scene.intrinsics)
 

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import re
+import shutil
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from test_integrity import bench
 from test_node_helpers import domain_for, node_args, tiny_checkpoint
 
+from pssnet_core.inference import DEFAULT_CHECKPOINT
 from pssnet_ros.processes import RosProcess, configure_this_process, ros_env
 
 pytestmark = pytest.mark.ros
@@ -18,7 +23,17 @@ def test_startup_errors_are_one_clean_line_and_exit_2(tmp_path):
     """Separate processes, as users start the node: bad model files and a bad parameter."""
     corrupt = tmp_path / "corrupt.pt"
     corrupt.write_bytes(b"\x80\x02 definitely not a zip archive" * 100)
+    flipped = Path(shutil.copyfile(DEFAULT_CHECKPOINT, tmp_path / "flipped.pt"))
+    bench.edit_bytes(flipped, np.random.default_rng(0), "flip")
+    untrained = Path(shutil.copyfile(DEFAULT_CHECKPOINT, tmp_path / "untrained.pt"))
+    bench.edit_state(untrained, bench.random_init(DEFAULT_CHECKPOINT), np.random.default_rng(0), True)
     cases = {
+        "bit-flipped model": (node_args(flipped),
+                              r"\[completion_node\] error: cannot load the completion model: \S+flipped\.pt is "
+                              r"corrupt: (weights differ|weight \S+ (has|spans))"),
+        "untrained model": (node_args(untrained),
+                            r"\[completion_node\] error: cannot load the completion model: \S+untrained\.pt: "
+                            r"self-test failed: the model (empties|fills) the grid"),
         "missing model": (node_args(tmp_path / "nope.pt"),
                           r"\[completion_node\] error: cannot load the completion model: no checkpoint file at "
                           r"\S+nope\.pt"),
@@ -42,6 +57,7 @@ def test_startup_errors_are_one_clean_line_and_exit_2(tmp_path):
         assert code == 2, f"{name}: exit code {code}\n{out}"
         assert re.search(pattern, out), f"{name}: {out}"
         assert "Traceback" not in out, f"{name}: {out}"
+        assert sum(line.startswith("[completion_node] error: ") for line in out.splitlines()) == 1, f"{name}: {out}"
 
 
 @pytest.fixture(scope="module")

@@ -52,6 +52,24 @@ def test_big_endian_bytes_are_decoded_as_big_endian():
     np.testing.assert_array_equal(image_to_numpy(msg), [[0x0201, 0x0A00]])
 
 
+@pytest.mark.parametrize("encoding", ["32FC1", "16UC1"])
+@pytest.mark.parametrize("bigendian", [False, True])
+def test_a_camera_depth_image_decodes_right_in_its_byte_order_and_is_refused_with_the_wrong_flag(encoding, bigendian):
+    from test_node_helpers import render_mug_scene
+
+    depth = render_mug_scene().depth.astype(np.float32)
+    if encoding == "16UC1":
+        depth = np.rint(depth * 1000).astype(np.uint16)
+    msg = numpy_to_image(depth, encoding, is_bigendian=bigendian)
+    expected = depth if encoding == "32FC1" else depth.astype(np.float32) * np.float32(0.001)
+    np.testing.assert_array_equal(depth_to_metres(msg), expected)
+    msg.is_bigendian = int(not bigendian)
+    order = "little" if bigendian else "big"
+    with pytest.raises(ConversionError, match=rf"depth is flagged {order}-endian \(is_bigendian={int(not bigendian)}\) "
+                                              r"but reads as the other byte order: .*fix the publisher's is_bigendian"):
+        depth_to_metres(msg)
+
+
 def test_depth_scale_and_float_passthrough():
     mm = np.array([[0, 500, 1234]], dtype=np.uint16)
     np.testing.assert_allclose(depth_to_metres(numpy_to_image(mm, "16UC1")), [[0.0, 0.5, 1.234]], rtol=1e-6)

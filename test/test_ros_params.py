@@ -65,6 +65,9 @@ def test_descriptors_carry_type_range_and_when_they_may_change():
     ({"up_vector": [0.0, 0.0, 0.0]}, "up_vector must be 3 finite numbers, not all zero"),
     ({"up_vector": [0.0, 1.0]}, "up_vector must be 3 finite numbers"),
     ({"up_vector": [0.0, float("nan"), 1.0]}, "up_vector must be 3 finite numbers"),
+    ({"up_vector": [1e200, 1e200, 0.0]}, r"up_vector must be 3 finite numbers of length 1e-06 to 1e\+06"),
+    ({"up_vector": [1e-200, 0.0, 0.0]}, r"up_vector must be 3 finite numbers of length 1e-06 to 1e\+06"),
+    ({"min_valid_fraction": 1.5}, r"min_valid_fraction must be in \[0.0, 1.0\], got 1.5"),
     ({"max_rate_hz": float("inf")}, "max_rate_hz must be finite"),
     ({"sync_tolerance": -0.1}, r"sync_tolerance must be in \[0.0, 10.0\], got -0.1"),
     ({"continuous": 1}, "continuous must be a bool, got 1"),
@@ -116,7 +119,7 @@ def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
 
 def test_every_pipeline_parameter_names_a_config_field_with_its_default():
     fields = [spec.field for spec in PARAMETERS if spec.field]
-    assert len(fields) == len(set(fields)) == 31
+    assert len(fields) == len(set(fields)) == 32
     for spec in PARAMETERS:
         if spec.field:
             assert spec.default == config_default(spec.field), spec.name
@@ -125,7 +128,8 @@ def test_every_pipeline_parameter_names_a_config_field_with_its_default():
     changed = {"num_samples": 7, "max_num_samples": 50, "box_temperature": 1.5, "seed": -1, "voxel_size": 0.004,
                "front_margin": 2.0, "bottom_margin": 0.5, "up_vector": [0.0, 0.0, 1.0], "estimate_up": True,
                "support_plane_distance": 0.002, "support_plane_max_tilt_deg": 30.0, "min_depth": 0.2,
-               "max_depth": 3.0, "min_mask_pixels": 10, "min_valid_points": 5, "grasp_max_opening": 0.1,
+               "max_depth": 3.0, "min_mask_pixels": 10, "min_valid_points": 5, "min_valid_fraction": 0.5,
+               "grasp_max_opening": 0.1,
                "grasp_finger_length": 0.06, "grasp_finger_width": 0.015, "grasp_finger_thickness": 0.012,
                "grasp_palm_depth": 0.03, "grasp_min_object_width": 0.004, "grasp_clearance": 0.004,
                "grasp_max_candidates": 300, "grasp_top_yaws": 4, "grasp_side_yaws": 6, "grasp_top_k": 3,

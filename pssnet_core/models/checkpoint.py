@@ -8,11 +8,20 @@ File layout (a ``torch.save`` dict, loaded with ``weights_only=True``)::
     storage_dtype: "float32" | "float16"
     inference_only: bool                   -> training-only modules (flow, discriminator) were dropped
     extra: dict                            -> free-form (training state, optimiser states, metrics)
+    integrity: dict                        -> SHA-256 of the stored weights, their ranges and the self-test
+                                              record (pssnet_core.models.integrity); written on every save
+
+Every load refuses non-finite weights and, when the record is there, weights outside their recorded ranges, a
+digest that differs and a canonical completion that no longer matches its fingerprint. A load for serving
+(``for_serving``: the node, ``pssnet bag``, the demo) also requires the record (checkpoints saved before it
+existed are re-exported with ``pssnet export-model``) and refuses a model whose canonical completion empties or
+fills the grid (a randomly initialised one does).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,10 +29,22 @@ import torch
 
 from pssnet_core.models.base import CompletionModel
 from pssnet_core.models.config import ConfigError, ModelConfig, config_from_dict
+from pssnet_core.models.integrity import (
+    LIMITS,
+    IntegrityError,
+    SelfTestLimits,
+    SelfTestResult,
+    check_weights,
+    make_record,
+    self_test,
+)
 from pssnet_core.models.registry import build_model
 
 FORMAT = "pssnet-checkpoint"
 VERSION = 1
+#: what a load not for serving checks of the self-test: only that the completion matches the record (a test's
+#: or an early training run's model may fill or empty the grid and still be what was saved)
+RECORD_ONLY = SelfTestLimits(min_fraction=0.0, max_fraction=1.0)
 
 
 class CheckpointError(ValueError):
@@ -56,9 +77,11 @@ def save_checkpoint(path: str | Path, model: CompletionModel, config: ModelConfi
         if half and tensor.is_floating_point():
             tensor = tensor.to(torch.float16)
         state[name] = tensor.clone()
+    # The self-test is recorded from the weights as they will be loaded (fp16-rounded for a compact export).
+    record = make_record(state, _model_from_state(config, state, inference_only, path))
     payload = {"format": FORMAT, "version": VERSION, "config": config.to_dict(), "state_dict": state,
                "storage_dtype": "float16" if half else "float32", "inference_only": bool(inference_only),
-               "extra": extra or {}}
+               "extra": extra or {}, "integrity": record}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -76,8 +99,9 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises many types (pickle, zip, runtime) for a bad file
+        reason = " ".join(str(error).split())  # one line: the node prints it as its exit message
         raise CheckpointError(f"{path} is not a readable checkpoint (corrupt or truncated?): "
-                              f"{type(error).__name__}: {error}") from error
+                              f"{type(error).__name__}: {reason}") from error
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a PSSNet-ROS checkpoint (no '{FORMAT}' format tag)")
     if int(payload.get("version", -1)) > VERSION:
@@ -86,41 +110,94 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     for key in ("config", "state_dict"):
         if not isinstance(payload.get(key), dict):
             raise CheckpointError(f"{path} lacks its '{key}' entry")
+    record = payload.get("integrity")
+    if record is not None and not isinstance(record, dict):
+        raise CheckpointError(f"{path} has a malformed integrity record")
+    try:
+        check_weights(payload["state_dict"], record)
+    except IntegrityError as error:
+        raise CheckpointError(f"{path} is corrupt: {error}") from error
     return payload
 
 
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
-                    ) -> tuple[CompletionModel, ModelConfig, dict[str, Any]]:
-    """Rebuilds the model of a checkpoint, in eval mode with float32 weights.
-
-    Returns:
-        ``(model, config, extra)``; ``extra`` also carries ``inference_only`` and ``storage_dtype``.
-
-    Raises:
-        CheckpointError: missing, corrupt, foreign or mismatching file.
-    """
-    payload = read_checkpoint(path, map_location)
-    try:
-        config = config_from_dict(payload["config"])
-    except ConfigError as error:
-        raise CheckpointError(f"{path} has an invalid model config: {error}") from error
+def _model_from_state(config: ModelConfig, state: dict[str, torch.Tensor], inference_only: bool,
+                      path: str | Path) -> CompletionModel:
+    """A CPU model in eval mode holding ``state`` as float32, as every load builds it."""
     model = build_model(config)
-    state = {k: (v.float() if v.is_floating_point() else v) for k, v in payload["state_dict"].items()}
-    inference_only = bool(payload.get("inference_only", False))
+    floats = {k: (v.float() if v.is_floating_point() else v) for k, v in state.items()}
     try:
-        missing, unexpected = model.load_state_dict(state, strict=False)
+        missing, unexpected = model.load_state_dict(floats, strict=False)
     except RuntimeError as error:  # shape mismatch
-        raise CheckpointError(f"{path}: weights do not fit its config: {error}") from error
+        reason = " ".join(str(error).split())
+        raise CheckpointError(f"{path}: weights do not fit its config: {reason}") from error
     allowed = model.training_only_prefixes if inference_only else ()
     missing = [k for k in missing if not k.startswith(allowed)] if allowed else list(missing)
     if missing or unexpected:
         raise CheckpointError(f"{path}: weights do not match the {config.model} model "
                               f"(missing {missing[:5]}, unexpected {list(unexpected)[:5]})")
-    model.to(map_location).eval()
+    return model.eval()
+
+
+@dataclass(frozen=True)
+class LoadedCheckpoint:
+    """A loaded checkpoint: the model (eval mode, float32 weights), its config, ``extra`` (which also carries
+    ``inference_only`` and ``storage_dtype``) and its self-test's result (None without an integrity record)."""
+
+    model: CompletionModel
+    config: ModelConfig
+    extra: dict[str, Any]
+    self_test: SelfTestResult | None
+
+
+def load_verified(path: str | Path, map_location: str | torch.device = "cpu", *,
+                  for_serving: bool = False) -> LoadedCheckpoint:
+    """Rebuilds the model of a checkpoint after checking its weights, and runs its self-test.
+
+    Args:
+        path: the checkpoint file.
+        map_location: device of the returned model (the checks run on the CPU).
+        for_serving: also require the integrity record and refuse a model whose canonical completion empties
+            or fills the grid (the node, ``pssnet bag``, the demo).
+
+    Raises:
+        CheckpointError: missing, corrupt, foreign or mismatching file, or a failed self-test; one line.
+    """
+    payload = read_checkpoint(path)
+    try:
+        config = config_from_dict(payload["config"])
+    except ConfigError as error:
+        raise CheckpointError(f"{path} has an invalid model config: {error}") from error
+    inference_only = bool(payload.get("inference_only", False))
+    model = _model_from_state(config, payload["state_dict"], inference_only, path)
+    record = payload.get("integrity")
+    if record is None and for_serving:
+        raise CheckpointError(f"{path} has no integrity record (SHA-256 and self-test; saved before checkpoints "
+                              f"carried one): re-export it with `pssnet export-model {path} NEW.pt`")
+    result = None
+    if record is not None:
+        try:
+            result = self_test(model, record, LIMITS if for_serving else RECORD_ONLY)
+        except IntegrityError as error:
+            raise CheckpointError(f"{path}: {error}") from error
+        except (KeyError, TypeError, ValueError, RuntimeError) as error:
+            raise CheckpointError(f"{path} has a malformed self-test record: {type(error).__name__}: "
+                                  f"{' '.join(str(error).split())}") from error
+    model.to(map_location)
     extra = dict(payload.get("extra") or {})
     extra.setdefault("inference_only", inference_only)
     extra.setdefault("storage_dtype", payload.get("storage_dtype", "float32"))
-    return model, config, extra
+    return LoadedCheckpoint(model, config, extra, result)
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
+                    ) -> tuple[CompletionModel, ModelConfig, dict[str, Any]]:
+    """``(model, config, extra)`` of :func:`load_verified` (not for serving).
+
+    Raises:
+        CheckpointError: missing, corrupt, foreign or mismatching file, or a failed self-test.
+    """
+    loaded = load_verified(path, map_location)
+    return loaded.model, loaded.config, loaded.extra
 
 
 def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
