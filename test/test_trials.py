@@ -23,7 +23,15 @@ from pssnet_core.shapes import make_shape
 from pssnet_core.trials.collision import ConvexPart, decompose, measure_faithfulness
 from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, run_trial
 from pssnet_core.trials.run import TrialRecord, TrialsConfig, paired_lines, run_trials, wilson_interval
-from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory, clear_of_clutter
+from pssnet_core.trials.scenarios import (
+    ScenarioConfig,
+    ScenarioError,
+    SceneFactory,
+    body_radii,
+    clear_of_clutter,
+    held_out_boxes,
+    held_out_mugs,
+)
 from pssnet_core.trials.strategies import Strategist
 
 GRIPPER = GripperConfig()
@@ -252,3 +260,18 @@ def test_the_command_is_registered_with_its_options():
     with pytest.raises(SystemExit):
         build_parser().parse_args(["grasp-trials", "--scenarios", "kitchen"])
     assert args.func(build_parser().parse_args(["grasp-trials", "--strategies", "vae"])) == 2  # no VAE checkpoint
+
+
+def test_out_of_family_pools_hold_independent_mugs_and_boxes_the_scenes_can_use():
+    mug = next(held_out_mugs(GRIPPER, "independent"))
+    box = next(held_out_boxes(GRIPPER, "independent"))
+    assert str(mug.identity).startswith("imug-") and str(box.identity).startswith("ibox-")
+    assert mug.handle is not None
+    largest, smallest = body_radii(mug)
+    assert largest == pytest.approx(float(mug.attributes["body_radius_m"]))
+    assert GRIPPER.max_opening / 2 < smallest <= largest  # the gripper cannot close across the body
+    assert min(box.mesh.extents[:2]) <= GRIPPER.max_opening - 0.01
+    procedural = make_shape("mug", 5)
+    assert body_radii(procedural) == (procedural.attributes["radius"], procedural.attributes["radius_min"])
+    with pytest.raises(ScenarioError, match="objects"):
+        ScenarioConfig(objects="scanned")

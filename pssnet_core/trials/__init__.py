@@ -14,5 +14,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 #: the scenes (:mod:`pssnet_core.trials.scenarios`)
 SCENARIOS = ("mug_hidden_handle", "box_slit", "control")
+#: where the scenes' objects come from (``ScenarioConfig.objects``): the training data's generator, or the
+#: out-of-family generator (:mod:`pssnet_core.shapes.independent`)
+OBJECT_SOURCES = ("procedural", "independent")
 #: the grasp-choosing strategies (:mod:`pssnet_core.trials.strategies`)
 STRATEGIES = ("pssnet", "pssnet_confident", "vae", "one_completion", "observed", "oracle", "random")

@@ -7,7 +7,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from pssnet_core.trials import SCENARIOS, STRATEGIES
+from pssnet_core.trials import OBJECT_SOURCES, SCENARIOS, STRATEGIES
 
 
 def _names(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
@@ -31,6 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"comma-separated (default {','.join(SCENARIOS)})")
     p.add_argument("--strategies", type=lambda t: _names(t, STRATEGIES, "strategies"), default=STRATEGIES,
                    help=f"comma-separated (default {','.join(STRATEGIES)})")
+    p.add_argument("--objects", choices=OBJECT_SOURCES, default="procedural",
+                   help="procedural: held-out objects of the training data's generator (default); independent: "
+                        "objects of the out-of-family generator, which made no training view")
     p.add_argument("--seed", type=int, default=0, help="master seed (scenes, latent noise, candidates)")
     p.add_argument("--num-samples", type=int, default=20, help="completions per view (the node's default: 20)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
@@ -50,6 +53,7 @@ def run_command(args: argparse.Namespace) -> int:
     checkpoints = {"pssnet": str(args.pssnet_checkpoint or "shipped default"), "vae": str(args.vae_checkpoint or "")}
     config = TrialsConfig(scenarios=args.scenarios, strategies=args.strategies, trials=args.trials, seed=args.seed,
                           num_samples=args.num_samples, filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
+    config = replace(config, scenario=replace(config.scenario, objects=args.objects))
     if args.cache_dir is not None:
         config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
     try:

@@ -37,12 +37,14 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import ConvexHull
 
 from pssnet_core.data.scenes import ObjectScene, RenderedView, object_pose, orbit_camera, posed_box_corners
 from pssnet_core.geometry import CameraIntrinsics, GridPose
 from pssnet_core.grasps import GraspCandidates, GripperConfig
 from pssnet_core.shapes import Shape, make_shape, split_seeds
-from pssnet_core.trials import SCENARIOS
+from pssnet_core.shapes.independent import make_independent_shape
+from pssnet_core.trials import OBJECT_SOURCES, SCENARIOS
 from pssnet_core.trials.collision import (
     DEFAULT_CACHE_DIR,
     ConvexPart,
@@ -65,6 +67,9 @@ class ScenarioConfig:
     """How scenes are drawn.
 
     Attributes:
+        objects: where the objects come from: ``procedural`` (test-split objects of the generator the training
+            data came from) or ``independent`` (the independently written generator of the out-of-family test
+            set, :mod:`pssnet_core.shapes.independent`: objects no training view was made by).
         mugs: size of the held-out mug pool (the first test-split mugs that qualify).
         boxes: size of the held-out box pool.
         shelf_gap: shelf bottom above the mug's rim (m).
@@ -78,6 +83,7 @@ class ScenarioConfig:
         cache_dir: where decompositions are cached (None: no cache).
     """
 
+    objects: str = "procedural"
     mugs: int = 24
     boxes: int = 24
     shelf_gap: float = 0.04
@@ -88,6 +94,10 @@ class ScenarioConfig:
     intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics.kinect_like)
     decomposition: DecompositionConfig = field(default_factory=DecompositionConfig)
     cache_dir: Path | None = DEFAULT_CACHE_DIR
+
+    def __post_init__(self) -> None:
+        if self.objects not in OBJECT_SOURCES:
+            raise ScenarioError(f"objects must be one of {OBJECT_SOURCES}, got {self.objects!r}")
 
 
 @dataclass
@@ -124,20 +134,53 @@ class TrialScene:
         return -origin_z / grid.voxel_size
 
 
-def held_out_mugs(gripper: GripperConfig) -> Iterator[Shape]:
-    """Test-split mugs, in seed order, with a handle and a round body wider than the gripper opens (+2 mm)."""
-    for seed in split_seeds("test", 5000):
-        shape = make_shape("mug", seed)
+def _independent_seeds() -> Iterator[int]:
+    # The out-of-family generator makes test objects only; its seeds follow the test split's numbering.
+    return iter(range(2_000_000, 2_005_000))
+
+
+def body_radii(shape: Shape) -> tuple[float, float]:
+    """(largest, smallest) horizontal half-width of a mug's body about its axis (x = y = 0), in metres.
+
+    Procedural mugs record both; for other mugs they are measured on the mesh's vertices within the recorded
+    body radius (the handle reaches beyond it): the smallest half-width of their convex outline, which is what
+    a gripper closing across the body meets.
+    """
+    a = shape.attributes
+    if "radius" in a and "radius_min" in a:
+        return float(a["radius"]), float(a["radius_min"])
+    radius = float(a["body_radius_m"])
+    xy = np.asarray(shape.mesh.vertices)[:, :2]
+    xy = xy[np.linalg.norm(xy, axis=1) <= radius + 1e-4]
+    hull = xy[ConvexHull(xy).vertices]
+    edges = np.roll(hull, -1, axis=0) - hull
+    normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1) / np.linalg.norm(edges, axis=1, keepdims=True)
+    widths = (hull @ normals.T).max(axis=0) - (hull @ normals.T).min(axis=0)
+    return radius, float(widths.min() / 2)
+
+
+def held_out_mugs(gripper: GripperConfig, objects: str = "procedural") -> Iterator[Shape]:
+    """Held-out mugs, in seed order, with a handle and a body wider than the gripper opens (+2 mm)."""
+    if objects == "procedural":
+        shapes = (make_shape("mug", seed) for seed in split_seeds("test", 5000))
+    else:
+        shapes = (make_independent_shape("imug", seed) for seed in _independent_seeds())
+    for shape in shapes:
         a = shape.attributes
-        if a["has_handle"] and not a["square_body"] and 2 * float(a["radius_min"]) >= gripper.max_opening + 0.002:
+        if a["has_handle"] and not a["square_body"] and 2 * body_radii(shape)[1] >= gripper.max_opening + 0.002:
             yield shape
 
 
-def held_out_boxes(gripper: GripperConfig) -> Iterator[Shape]:
-    """Standing test-split boxes, in seed order, whose short horizontal side fits the gripper (1 cm spare)."""
-    for seed in split_seeds("test", 5000):
-        shape = make_shape("box", seed)
-        if not shape.attributes["lying"] and min(shape.mesh.extents[:2]) <= gripper.max_opening - 0.01:
+def held_out_boxes(gripper: GripperConfig, objects: str = "procedural") -> Iterator[Shape]:
+    """Standing held-out boxes, in seed order, whose short horizontal side fits the gripper (1 cm spare)."""
+    if objects == "procedural":
+        shapes = (make_shape("box", seed) for seed in split_seeds("test", 5000))
+    else:
+        shapes = (make_independent_shape("ibox", seed) for seed in _independent_seeds())
+    for shape in shapes:
+        extents = shape.mesh.extents
+        standing = not shape.attributes["lying"] if "lying" in shape.attributes else extents[2] >= min(extents[:2])
+        if standing and min(extents[:2]) <= gripper.max_opening - 0.01:
             yield shape
 
 
@@ -191,13 +234,13 @@ class SceneFactory:
     @property
     def mugs(self) -> list[Shape]:
         if self._mugs is None:
-            self._mugs = self._pool(held_out_mugs(self.gripper), self.config.mugs, "mugs")
+            self._mugs = self._pool(held_out_mugs(self.gripper, self.config.objects), self.config.mugs, "mugs")
         return self._mugs
 
     @property
     def boxes(self) -> list[Shape]:
         if self._boxes is None:
-            self._boxes = self._pool(held_out_boxes(self.gripper), self.config.boxes, "boxes")
+            self._boxes = self._pool(held_out_boxes(self.gripper, self.config.objects), self.config.boxes, "boxes")
         return self._boxes
 
     def _pool(self, candidates: Iterator[Shape], count: int, what: str) -> list[Shape]:
@@ -256,7 +299,7 @@ class SceneFactory:
         shape = self.mugs[int(rng.integers(len(self.mugs)))]
         yaw = float(rng.uniform(-80.0, 80.0))
         pose = object_pose(shape.mesh, yaw)
-        radius = float(shape.attributes["radius"])
+        radius, radius_min = body_radii(shape)
         height = float(shape.bounds[1, 2])
         reach = float(shape.bounds[1, 0])  # body axis to the handle's outer side
         shelf_z = height + self.config.shelf_gap
@@ -269,7 +312,7 @@ class SceneFactory:
                        for sign in (-1.0, 1.0))
         target = np.array([0.0, 0.0, height / 2]) + rng.uniform(-0.01, 0.01, size=3)
         camera = orbit_camera(target, float(rng.uniform(0.5, 0.8)), float(rng.uniform(5.0, 20.0)))
-        notes = {"yaw_deg": round(yaw, 2), "body_diameter": round(2 * float(shape.attributes["radius_min"]), 4)}
+        notes = {"yaw_deg": round(yaw, 2), "body_diameter": round(2 * radius_min, 4)}
         return shape, pose, camera, (shelf, *blocks), ((0.0, 0.0, 0.02), (0.15, 0.0, 0.0)), notes
 
     def _box_slit(self, rng: np.random.Generator):
