@@ -36,6 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "objects of the out-of-family generator, which made no training view")
     p.add_argument("--seed", type=int, default=0, help="master seed (scenes, latent noise, candidates)")
     p.add_argument("--num-samples", type=int, default=20, help="completions per view (the node's default: 20)")
+    p.add_argument("--sampler", choices=("posterior", "checked"), default="checked",
+                   help="how PSSNet and the VAE draw their samples (the node's sampler parameter; default checked)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
     p.add_argument("--out", type=Path, default=Path("results/grasp_trials"), help="output directory")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -52,7 +54,8 @@ def run_command(args: argparse.Namespace) -> int:
 
     checkpoints = {"pssnet": str(args.pssnet_checkpoint or "shipped default"), "vae": str(args.vae_checkpoint or "")}
     config = TrialsConfig(scenarios=args.scenarios, strategies=args.strategies, trials=args.trials, seed=args.seed,
-                          num_samples=args.num_samples, filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
+                          num_samples=args.num_samples, sampler=args.sampler, filmstrip_scenes=args.filmstrip_scenes,
+                          checkpoints=checkpoints)
     config = replace(config, scenario=replace(config.scenario, objects=args.objects))
     if args.cache_dir is not None:
         config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
@@ -64,7 +67,7 @@ def run_command(args: argparse.Namespace) -> int:
         pssnet = Completer.from_checkpoint(args.pssnet_checkpoint, threads=args.threads)
         vae = Completer.from_checkpoint(args.vae_checkpoint, threads=args.threads) if args.vae_checkpoint else None
         strategist = Strategist(pssnet, vae, config.grasps, config.num_samples, config.physics,
-                                config.scenario.clutter_margin)
+                                config.scenario.clutter_margin, config.sampler)
         records = run_trials(config, strategist, args.out, progress=not args.no_progress)
     except (CheckpointError, ValueError, OSError) as error:
         print(f"pssnet grasp-trials: error: {error}", file=sys.stderr)

@@ -38,6 +38,7 @@ class TrialsConfig:
         trials: scenes per scenario (every strategy gets each scene).
         seed: master seed of the scenes, latent noise and candidate sampling.
         num_samples: completions per view for PSSNet and the VAE (the node's default is 20).
+        sampler: how PSSNet and the VAE draw them (the pipeline's ``sampler``; the node's default: checked).
         filmstrip_scenes: scenes per scenario drawn in the filmstrip (the first ones).
         grasps: grasp candidate and scoring options: the node's defaults, but 10 raw (anchor, orientation)
             pairs per kept candidate instead of 3 (the clutter filter drops most of them: in the cupboard ~95 %)
@@ -53,6 +54,7 @@ class TrialsConfig:
     trials: int = 200
     seed: int = 0
     num_samples: int = 20
+    sampler: str = "checked"
     filmstrip_scenes: int = 2
     grasps: GraspConfig = field(default_factory=lambda: GraspConfig(oversample=10.0, plane_clearance=0.003))
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)

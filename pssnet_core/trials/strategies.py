@@ -71,15 +71,17 @@ class Strategist:
         vae: the VAE completer, or None (then the ``vae`` strategy cannot be asked for).
         grasps: grasp candidate and scoring options (the node's).
         num_samples: completions drawn per view for PSSNet and the VAE.
+        sampler: how they are drawn (``PipelineConfig.sampler``).
         physics: for the pre-grasp distance the clutter filter checks.
         clutter_margin: clearance the planner keeps from the clutter (m).
     """
 
     def __init__(self, pssnet: Completer, vae: Completer | None, grasps: GraspConfig, num_samples: int,
-                 physics: PhysicsConfig, clutter_margin: float) -> None:
-        self.pipelines = {"pssnet": CompletionPipeline(pssnet, PipelineConfig(num_samples=num_samples, grasps=grasps))}
+                 physics: PhysicsConfig, clutter_margin: float, sampler: str = "checked") -> None:
+        config = PipelineConfig(num_samples=num_samples, grasps=grasps, sampler=sampler)
+        self.pipelines = {"pssnet": CompletionPipeline(pssnet, config)}
         if vae is not None:
-            self.pipelines["vae"] = CompletionPipeline(vae, PipelineConfig(num_samples=num_samples, grasps=grasps))
+            self.pipelines["vae"] = CompletionPipeline(vae, config)
         self.pssnet = pssnet
         self.grasps = grasps
         self.physics = physics
