@@ -381,3 +381,24 @@ def test_lever_is_the_weights_moment_across_the_closing_axis():
 
     assert lever(np.array([0.0, 1.0, 0.0])) == pytest.approx(0.0, abs=1e-9)  # the moment is about the closing axis
     assert lever(np.array([0.0, 0.0, 1.0])) == pytest.approx(6.0)  # pinched from above and below: all across
+
+
+def test_a_fingertip_pinch_of_a_round_bodys_near_side_is_squeezed_out_a_flat_one_is_not():
+    # A vertical cylinder of radius 7 voxels (too wide for the opening) and a 6-voxel-thick slab, both pinched
+    # by a side grasp from -x whose fingertips reach 2 voxels past the near face, closing along y.
+    i, j = np.meshgrid(np.arange(N) + 0.5, np.arange(N) + 0.5, indexing="ij")
+    cylinder = np.zeros((1, N, N, N), dtype=bool)
+    cylinder[0, (i - 16.0) ** 2 + (j - 16.0) ** 2 <= 7.0**2, 2:20] = True
+    slab = np.zeros((1, N, N, N), dtype=bool)
+    slab[0, 9:23, 13:19, 2:20] = True
+    approach, closing = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    rot = np.stack([np.cross(closing, approach), closing, approach], axis=1)
+
+    def checks(occ: np.ndarray, width: float):
+        candidates = GraspCandidates(np.array([[11.0, 16.0, 11.0]]), rot[None], np.array([width]), np.ones(1, np.int8))
+        return check_grasps(candidates, occ, identity_pose(), 2.0, CONFIG)
+
+    round_pinch = checks(cylinder, 12.0)
+    assert round_pinch.contains[0, 0] and round_pinch.squeezed_out[0, 0] and not round_pinch.holds[0, 0]
+    flat_pinch = checks(slab, 8.0)
+    assert flat_pinch.contains[0, 0] and not flat_pinch.squeezed_out[0, 0] and flat_pinch.holds[0, 0]

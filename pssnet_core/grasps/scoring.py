@@ -36,6 +36,10 @@ class GraspChecks:
         finger_hit: (K, S) a finger overlaps the completion.
         palm_hit: (K, S) the palm overlaps the completion.
         coverage: (K, S) fraction of the finger pads touching the object when the fingers close (0 if none).
+        squeezed_out: (K, S) the object widens towards the fingertips where they hold it (its extent across the
+            closing axis grows by a slice or more over the last row of pad cells): the pads meet a surface
+            inclined towards the palm by more than ~27 degrees, outside a friction cone of coefficient 0.5, and
+            closing pushes the object out of the hand (a fingertip pinch of a round body's near side).
         lever: (K, S) the arm (voxels) of completion s's weight about the grasp, the part of its moment that lies
             across the closing axis: the pads can resist that part only by pressing unevenly, which a small
             contact (a pinch of a handle from above and below) cannot. A moment about the closing axis itself is
@@ -48,12 +52,14 @@ class GraspChecks:
     finger_hit: np.ndarray
     palm_hit: np.ndarray
     coverage: np.ndarray
+    squeezed_out: np.ndarray
     lever: np.ndarray
 
     @property
     def holds(self) -> np.ndarray:
         """(K, S) the grasp holds for the completion."""
-        return (self.fits & self.above)[:, None] & self.contains & ~self.finger_hit & ~self.palm_hit
+        return ((self.fits & self.above)[:, None] & self.contains & ~self.finger_hit & ~self.palm_hit
+                & ~self.squeezed_out)
 
 
 def check_grasps(candidates: GraspCandidates, occupancy: np.ndarray, pose: GridPose, support_z: float,
@@ -77,7 +83,8 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     k, s = len(candidates), bits.num
     if k == 0:
         none = np.zeros((0, s), dtype=bool)
-        return GraspChecks(np.zeros(0, bool), np.zeros(0, bool), none, none, none, np.zeros((0, s)), np.zeros((0, s)))
+        return GraspChecks(np.zeros(0, bool), np.zeros(0, bool), none, none, none, np.zeros((0, s)), none,
+                           np.zeros((0, s)))
     dims = VoxelDims.of(config, pose.voxel_size)
     fl, fw, ft, wmax = dims.finger_length, dims.finger_width, dims.finger_thickness, dims.max_opening
     origins = np.asarray(candidates.origins, dtype=np.float64)
@@ -94,8 +101,17 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
                      np.stack([np.full(k, fw / 2), widths / 2, np.full(k, fl / 2)], axis=1), (nx, n_y, nz),
                      keep=(1, 0, 2)).reshape(len(bits.data), n_y, nx * nz, k)  # (W, n_y, pad cells, K)
     lo, hi, has = _extents(bits, np.bitwise_or.reduce(closing, axis=2))
-    extent = (hi - lo + 1) * (widths / (n_y - 1))[:, None]
+    step = (widths / (n_y - 1))[:, None]  # slice spacing, voxels
+    extent = (hi - lo + 1) * step
     contains = has & (extent >= dims.min_object_width - 1e-9)
+    # Squeeze-out: the object's extent in the fingertip row of pad cells against the row behind it (rows are the
+    # lattice's z, last = fingertips; cells are x-major).
+    rows = np.bitwise_or.reduce(closing.reshape(len(bits.data), n_y, nx, nz, k), axis=2)  # (W, n_y, nz, K)
+    row_extents = []
+    for row in (nz - 1, nz - 2):
+        row_lo, row_hi, row_has = _extents(bits, rows[:, :, row])
+        row_extents.append(np.where(row_has, (row_hi - row_lo + 1) * step, 0.0))
+    squeezed_out = row_extents[0] > row_extents[1] + 0.5 * step
     # Pad contact: closing each finger until it touches completion s (slice lo / hi), the pad cells whose
     # column meets object within one voxel of that first touch, i.e. at or before slice reach[k, s]. For all
     # completions at once: OR over slices i of the words masked to the completions with reach >= i, then bit s
@@ -120,7 +136,8 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
                                   np.array([fw / 2, wmax / 2 + ft, dims.palm_depth / 2]),
                                   (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0)),
                                   keep=()))
-    return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage, _levers(bits, origins, rot, fl))
+    return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage, squeezed_out,
+                       _levers(bits, origins, rot, fl))
 
 
 def _levers(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, finger_length: float) -> np.ndarray:
