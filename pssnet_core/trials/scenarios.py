@@ -134,9 +134,12 @@ class TrialScene:
         return -origin_z / grid.voxel_size
 
 
-def _independent_seeds() -> Iterator[int]:
+def _held_out(family: str, objects: str) -> Iterator[Shape]:
+    """Held-out ``family`` ("mug" or "box") objects of the source ``objects``, in seed order."""
+    if objects == "procedural":
+        return (make_shape(family, seed) for seed in split_seeds("test", 5000))
     # The out-of-family generator makes test objects only; its seeds follow the test split's numbering.
-    return iter(range(2_000_000, 2_005_000))
+    return (make_independent_shape(f"i{family}", seed) for seed in range(2_000_000, 2_005_000))
 
 
 def body_radii(shape: Shape) -> tuple[float, float]:
@@ -161,11 +164,7 @@ def body_radii(shape: Shape) -> tuple[float, float]:
 
 def held_out_mugs(gripper: GripperConfig, objects: str = "procedural") -> Iterator[Shape]:
     """Held-out mugs, in seed order, with a handle and a body wider than the gripper opens (+2 mm)."""
-    if objects == "procedural":
-        shapes = (make_shape("mug", seed) for seed in split_seeds("test", 5000))
-    else:
-        shapes = (make_independent_shape("imug", seed) for seed in _independent_seeds())
-    for shape in shapes:
+    for shape in _held_out("mug", objects):
         a = shape.attributes
         if a["has_handle"] and not a["square_body"] and 2 * body_radii(shape)[1] >= gripper.max_opening + 0.002:
             yield shape
@@ -173,11 +172,7 @@ def held_out_mugs(gripper: GripperConfig, objects: str = "procedural") -> Iterat
 
 def held_out_boxes(gripper: GripperConfig, objects: str = "procedural") -> Iterator[Shape]:
     """Standing held-out boxes, in seed order, whose short horizontal side fits the gripper (1 cm spare)."""
-    if objects == "procedural":
-        shapes = (make_shape("box", seed) for seed in split_seeds("test", 5000))
-    else:
-        shapes = (make_independent_shape("ibox", seed) for seed in _independent_seeds())
-    for shape in shapes:
+    for shape in _held_out("box", objects):
         extents = shape.mesh.extents
         standing = not shape.attributes["lying"] if "lying" in shape.attributes else extents[2] >= min(extents[:2])
         if standing and min(extents[:2]) <= gripper.max_opening - 0.01:
