@@ -165,13 +165,13 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     t = np.where(going_down, np.minimum(t, limit), t)
     # Shallow variants: fingertips only this far past the first contact (distinct from the deepest grasp).
     depths = [t]
-    selves = [np.arange(len(t))]
+    pair_of_depth = [np.arange(len(t))]
     for depth in config.shallow_depths:
         shallow = first + depth / pose.voxel_size
         distinct = shallow < t - 0.5
         depths.append(shallow[distinct])
-        selves.append(np.flatnonzero(distinct))
-    pick = np.concatenate(selves)
+        pair_of_depth.append(np.flatnonzero(distinct))
+    pick = np.concatenate(pair_of_depth)
     p, rot, orient_id, t = p[pick], rot[pick], orient_id[pick], np.concatenate(depths)
     keep = t > 0.0
     p, rot, t, orient_id = p[keep], rot[keep], t[keep], orient_id[keep]
