@@ -6,6 +6,7 @@ scoring every candidate against every completion cheap.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -39,6 +40,18 @@ class PackedGrids:
             np.left_shift(occupancy[i], i % 64, out=bit, dtype=dtype)
             inner[i // 64] |= bit
         self.data = data.reshape(words, -1)
+        self._occupancy = occupancy  # a reference, for mass_centres (computed only when asked)
+
+    @functools.cached_property
+    def mass_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(S, 3) centroid of each completion's voxel centres (grid coordinates; zeros for an empty one) and its
+        (S,) voxel count: a completion's centre of mass at uniform density."""
+        occupancy = self._occupancy
+        counts = occupancy.reshape(self.num, -1).sum(axis=1)
+        centres = np.arange(self.size) + 0.5
+        sums = np.stack([occupancy.sum(axis=tuple(a for a in (1, 2, 3) if a != axis)) @ centres
+                         for axis in (1, 2, 3)], axis=1)
+        return sums / np.maximum(counts, 1)[:, None], counts
 
     def unpack(self, words: np.ndarray) -> np.ndarray:
         """Words (W, ...) -> (..., S) bool."""

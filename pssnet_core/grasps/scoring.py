@@ -142,11 +142,7 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
 
 def _levers(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, finger_length: float) -> np.ndarray:
     """(K, S) :attr:`GraspChecks.lever`: each completion's centroid stands for its centre of mass (uniform density)."""
-    occupied = bits.unpack(bits.data)  # (P^3, S) over the padded grid
-    p = bits.padded
-    ijk = np.stack(np.unravel_index(np.arange(p**3), (p, p, p)), axis=1).astype(np.float64) - 0.5  # voxel centres
-    counts = occupied.sum(axis=0)
-    centroids = (occupied.T.astype(np.float64) @ ijk) / np.maximum(counts, 1)[:, None]  # (S, 3) grid coordinates
+    centroids, counts = bits.mass_centres
     centre = origins - 0.5 * finger_length * rot[:, :, 2]  # middle of the closing region
     arm = centroids[None, :, :] - centre[:, None, :]  # (K, S, 3)
     moment = np.stack([-arm[..., 1], arm[..., 0], np.zeros(arm.shape[:2])], axis=2)  # arm x (0, 0, -1)
