@@ -106,9 +106,9 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     contains = has & (extent >= dims.min_object_width - 1e-9)
     # Squeeze-out: the object's extent in the fingertip row of pad cells against the row behind it (rows are the
     # lattice's z, last = fingertips; cells are x-major).
-    rows = np.bitwise_or.reduce(closing.reshape(len(bits.data), n_y, nx, nz, k), axis=2)  # (W, n_y, nz, K)
-    row_extents = []
-    for row in (nz - 1, nz - 2):
+    rows = np.bitwise_or.reduce(closing.reshape(len(bits.data), n_y, nx, nz, k)[:, :, :, nz - 2:], axis=2)
+    row_extents = []  # (K, S) each: the fingertip row's, then the one behind it
+    for row in (1, 0):
         row_lo, row_hi, row_has = _extents(bits, rows[:, :, row])
         row_extents.append(np.where(row_has, (row_hi - row_lo + 1) * step, 0.0))
     squeezed_out = row_extents[0] > row_extents[1] + 0.5 * step
