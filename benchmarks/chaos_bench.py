@@ -11,8 +11,11 @@
     that never spins, one that sleeps 2 s in its callback, one frozen with SIGSTOP, and all three, each right
     after a window with none (the machine is shared: neighbours compare best): the rate and latency a normal
     subscriber sees, service latency, the node's RSS and CPU and the CPU everything else took.
+(e) lifecycle transitions mid-work (``--repeats`` times each): deactivate, deactivate+cleanup and shutdown
+    sent while a heavy call computes and while a continuous-mode set is completed: calls answered, node
+    alive (or stopped cleanly after shutdown) and serving again, how long the transition took.
 
-    .venv/bin/python benchmarks/chaos_bench.py [--repeats 3] [--stall-seconds 30] [--rounds 1] [--only abcd]
+    .venv/bin/python benchmarks/chaos_bench.py [--repeats 3] [--stall-seconds 30] [--rounds 1] [--only abcde]
 """
 
 from __future__ import annotations
@@ -27,9 +30,10 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from pssnet_interfaces.srv import SampleCompletions
 
 from pssnet_ros import chaos
-from pssnet_ros.client import RosClient, wait_until
+from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.processes import (
     SHM_GRACE_S,
     RosProcess,
@@ -82,8 +86,9 @@ def node_killed(args: argparse.Namespace, domain: int) -> list[dict]:
                       f"sample call: answered {report.answered}; the client gave up "
                       f"{seconds(report.gave_up_after_kill_s, 'never (hang)')} after the kill (timeout "
                       f"{report.call_timeout_s:g} s: {report.error}); service_is_ready() false after {gone}; "
-                      f"restarted node ready in {report.restart_ready_s:.1f} s, served {report.served} in "
-                      f"{report.served_ms:.0f} ms (attempt {report.attempts}); the killed node's shared memory: "
+                      f"restarted node ready in {report.restart_ready_s:.1f} s; the request re-sent from the "
+                      f"kill on answered {report.resent_answered} after {report.served_ms / 1000:.1f} s (attempt "
+                      f"{report.attempts}); the killed node's shared memory: "
                       f"{len(report.shm_files)} files, {mib(report.shm_bytes)}, "
                       f"{len(report.stale_before_restart)} unused at the restart; fates {fates}")
                 reports.append(asdict(report))
@@ -120,7 +125,7 @@ def stale_shared_memory(args: argparse.Namespace, domain: int) -> dict:
     node = start_node(domain, args.threads, args.model)
     with RosClient(domain, "chaos_bench_c") as ros:
         for _ in range(5):
-            chaos.call_until_answered(ros, chaos.scene_request(chaos.LIGHT_SAMPLES), 1, 60.0)
+            ros.call(ros.service(SampleCompletions, SAMPLE_SERVICE), chaos.scene_request(chaos.LIGHT_SAMPLES))
     node.record_shm_files()
     node.proc.send_signal(signal.SIGKILL)
     node.stop()
@@ -167,11 +172,65 @@ def stalled_subscribers(args: argparse.Namespace, domain: int) -> list[dict]:
     return windows
 
 
+def transitions_mid_work(args: argparse.Namespace, domain: int) -> list[dict]:
+    """Each transition sequence ``--repeats`` times during a heavy call, then during topic sets, at delays
+    spread over 0-1 s after the work started (so that every step of the pipeline is hit)."""
+    reports: list[dict] = []
+    delays = np.random.default_rng(0).uniform(0.0, 1.0, size=args.repeats)
+    node = start_node(domain, args.threads, args.model, num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0)
+    camera = None
+    try:
+        with RosClient(domain, "chaos_bench_e") as ros:
+            for work in chaos.WORK_KINDS:
+                continuous = work == "topics"
+                if continuous:
+                    camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"],
+                                                      ros_env(domain), name="camera")
+                    camera.wait_for(r"publishing", 60)
+                    assert ros.set_parameters(continuous=True)[0].successful
+                for transition in chaos.TRANSITION_SEQUENCES:
+                    for delay in delays:
+                        report, node = chaos.transition_mid_work(
+                            ros, node, transition, work,
+                            lambda c=continuous: start_node(domain, args.threads, args.model, continuous=c,
+                                                            num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0),
+                            delay_s=float(delay), timeout=120.0)
+                        reports.append(asdict(report))
+                        if not (report.node_alive and report.restored):
+                            print(f"[chaos] (e) FAILED: {report}", flush=True)
+                    done = [r for r in reports if r["work"] == work and r["transition"] == transition]
+                    print(f"[chaos] (e) {transition} during {work}: {summarise_transitions(done)}", flush=True)
+    finally:
+        if camera is not None:
+            camera.stop()
+        node.stop()
+    return reports
+
+
+def summarise_transitions(reports: list[dict]) -> str:
+    calls = [r for r in reports if r["answered"] is not None]
+    seconds = [r["transition_s"] for r in reports]
+    text = (f"{len(reports)} times, work in flight {sum(r['busy'] for r in reports)}, transition accepted "
+            f"{sum(r['accepted'] for r in reports)}, node alive {sum(r['node_alive'] for r in reports)}, served "
+            f"again {sum(r['restored'] for r in reports)}; transition took {np.median(seconds):.2f} s median, "
+            f"{np.max(seconds):.2f} s max")
+    if calls:
+        cancelled = sum(r["status"] == SampleCompletions.Response.STATUS_CANCELLED for r in calls)
+        text += (f"; calls answered {sum(r['answered'] for r in calls)}/{len(calls)} ({cancelled} cancelled, "
+                 f"{sum(bool(r['success']) for r in calls)} completed)")
+    else:
+        text += f"; topic sets cancelled {sum(r['cancelled_sets'] for r in reports)}"
+    exits = [r["clean_exit"] for r in reports if r["clean_exit"] is not None]
+    if exits:
+        text += f"; clean exits after shutdown {sum(exits)}/{len(exits)}"
+    return text
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="", help="checkpoint (default: the shipped model)")
     parser.add_argument("--threads", type=int, default=2, help="node torch threads")
-    parser.add_argument("--repeats", type=int, default=3, help="kills in (a) and (b)")
+    parser.add_argument("--repeats", type=int, default=3, help="kills in (a) and (b); each transition in (e)")
     parser.add_argument("--call-timeout", type=float, default=5.0, help="(a): the client's timeout, s")
     parser.add_argument("--watch-server", type=float, default=40.0,
                         help="(a), first kill: watch service_is_ready() this long, s (0: not at all)")
@@ -179,7 +238,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=1, help="(d): repetitions of the windows")
     parser.add_argument("--camera-rate", type=float, default=30.0, help="(d): synthetic camera rate, Hz")
     parser.add_argument("--max-rate", type=float, default=30.0, help="(d): node max_rate_hz")
-    parser.add_argument("--only", default="abcd", help="scenarios to run, e.g. 'ad'")
+    parser.add_argument("--only", default="abcde", help="scenarios to run, e.g. 'ad'")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     domain = claim_domain_id(10 + os.getpid() % 90)
@@ -187,7 +246,8 @@ def main() -> int:
           f"node threads {args.threads}")
     results: dict[str, object] = {"cpu": cpu_kind()}
     scenarios = {"a": ("node_killed", node_killed), "b": ("client_killed", client_killed),
-                 "c": ("stale_shm", stale_shared_memory), "d": ("stalled_subscribers", stalled_subscribers)}
+                 "c": ("stale_shm", stale_shared_memory), "d": ("stalled_subscribers", stalled_subscribers),
+                 "e": ("transitions_mid_work", transitions_mid_work)}
     for key in args.only:
         name, run = scenarios[key]
         t0 = time.monotonic()
@@ -198,8 +258,9 @@ def main() -> int:
         gave_up = [r["gave_up_after_kill_s"] for r in kills if r["gave_up_after_kill_s"] is not None]
         print(f"[chaos] (a) summary: {sum(r['answered'] for r in kills)} answers from killed nodes, "
               f"{len(kills) - len(gave_up)} clients hung, the others gave up after the kill in "
-              f"{np.min(gave_up):.2f}-{np.max(gave_up):.2f} s; {sum(r['served'] for r in kills)}/{len(kills)} "
-              f"restarted nodes served")
+              f"{np.min(gave_up):.2f}-{np.max(gave_up):.2f} s; requests sent while the node was down and "
+              f"re-sent until answered: {sum(r['resent_answered'] for r in kills)}/{len(kills)} answered, "
+              f"{sum(not r['resent_answered'] for r in kills)} lost")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2, default=str))
     return 0

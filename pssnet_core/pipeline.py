@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -56,6 +57,14 @@ def up_vector_warning(tilt_deg: float, limit_deg: float) -> str:
 
 class PipelineInputError(ValueError):
     """The input (images, intrinsics, request options) cannot be processed; the message says why."""
+
+
+class ModelOutputError(ValueError):
+    """The model's samples failed the integrity check (a sample is empty or fills the grid): a broken model."""
+
+
+class RunCancelled(RuntimeError):
+    """:meth:`CompletionPipeline.run` stopped early because its ``should_stop`` said so."""
 
 
 @dataclass(frozen=True)
@@ -364,7 +373,8 @@ class CompletionPipeline:
         return n
 
     def run(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
-            num_samples: int | None = None, compute_grasps: bool = True) -> PipelineResult:
+            num_samples: int | None = None, compute_grasps: bool = True,
+            should_stop: Callable[[], bool] | None = None) -> PipelineResult:
         """Completes one view.
 
         Args:
@@ -373,10 +383,13 @@ class CompletionPipeline:
             intrinsics: intrinsics of the depth image.
             num_samples: completions to draw; None or 0 = ``config.num_samples``.
             compute_grasps: also generate and score grasps.
+            should_stop: asked between the steps (before the network, before the grasps); True ends the run
+                with :class:`RunCancelled` (a node leaving the active state stops its calls in flight so).
 
         Raises:
+            RunCancelled: ``should_stop`` returned True.
             PipelineInputError: the input cannot be processed (the message says why).
-            IntegrityError: a sample is empty or fills the grid (a broken model; a ValueError too).
+            ModelOutputError: a sample is empty or fills the grid (a broken model; a ValueError too).
         """
         t0 = time.perf_counter()
         config = self._config  # one consistent snapshot even if the node updates parameters meanwhile
@@ -393,9 +406,10 @@ class CompletionPipeline:
             check_object_scale(observation.points, observation.pose, grid, config.min_object_voxels)
         except ObservationError as error:
             raise PipelineInputError(str(error)) from error
+        self._stop_if(should_stop, "before the network")
         t1 = time.perf_counter()
         from pssnet_core.inference import CompletionInputError
-        from pssnet_core.models.integrity import check_samples
+        from pssnet_core.models.integrity import IntegrityError, check_samples
 
         with self._lock:
             seed = config.seed if config.seed >= 0 else int(self._seed_rng.integers(0, 2**31 - 1))
@@ -404,7 +418,10 @@ class CompletionPipeline:
                                                             box_temperature=config.box_temperature or None)
             except CompletionInputError as error:
                 raise PipelineInputError(str(error)) from error
-        check_samples(completion.occupancy)  # an empty or full sample is a broken model, never a result
+        try:
+            check_samples(completion.occupancy)  # an empty or full sample is a broken model, never a result
+        except IntegrityError as error:
+            raise ModelOutputError(str(error)) from error
         weights = getattr(completion, "weights", None)  # the checked sampler's; the posterior's weigh alike
         if weights is None:
             weights = np.full(n, 1.0 / n, np.float32)
@@ -415,6 +432,7 @@ class CompletionPipeline:
         t3 = time.perf_counter()
         grasps = None
         if compute_grasps:
+            self._stop_if(should_stop, "before the grasps")
             try:
                 grasps = plan_grasps(completion.occupancy, pose, observation.points, replace(config.grasps, seed=seed),
                                      known_occupied=observation.known_occupied, weights=weights)
@@ -427,6 +445,11 @@ class CompletionPipeline:
                               completions=completions, occupancy=completion.occupancy, grasps=grasps, up=up,
                               seed=seed, timings=timings, weights=np.asarray(weights, np.float32),
                               note=self._note(completion, up_disagreement, config), up_disagreement_deg=up_disagreement)
+
+    @staticmethod
+    def _stop_if(should_stop: Callable[[], bool] | None, where: str) -> None:
+        if should_stop is not None and should_stop():
+            raise RunCancelled(f"stopped {where}")
 
     @staticmethod
     def _note(completion: Any, up_disagreement: float, config: PipelineConfig) -> str:

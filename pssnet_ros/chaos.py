@@ -8,6 +8,8 @@ stalls, and what that does to everyone else. Shared by ``benchmarks/chaos_bench.
   answers into the void and serves the next client.
 - :func:`run_with_subscribers`: completions and service calls while other subscribers of
   ``/pssnet/completions`` never spin, sleep in their callback, or are frozen (SIGSTOP).
+- :func:`transition_mid_work`: deactivate, cleanup or shutdown sent while a call or a topic set is in
+  flight; the call is answered, the node lives (or stops cleanly after shutdown) and serves again.
 
 The processes the scenarios start run this module: ``python -m pssnet_ros.chaos client|subscriber ...``.
 """
@@ -76,19 +78,23 @@ def scene_up_vector() -> list[float]:
 
 
 class BackgroundCall:
-    """:meth:`RosClient.call` in a thread, so that the caller can kill something while the request is in flight."""
+    """A call in a thread, so that the caller can kill something while the request is in flight.
 
-    def __init__(self, client: Any, request: Any, timeout: float) -> None:
+    ``call`` returns the response (e.g. ``lambda: RosClient.call(client, request, timeout)``); what it raises is
+    kept in ``error`` for the caller to judge.
+    """
+
+    def __init__(self, call: Callable[[], Any]) -> None:
         self.sent_at = time.monotonic()
         self.finished_at: float | None = None
         self.response: Any = None
         self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(client, request, timeout), daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(call,), daemon=True)
         self._thread.start()
 
-    def _run(self, client: Any, request: Any, timeout: float) -> None:
+    def _run(self, call: Callable[[], Any]) -> None:
         try:
-            self.response = RosClient.call(client, request, timeout)
+            self.response = call()
         except BaseException as error:  # reported to the caller, who judges it
             self.error = error
         self.finished_at = time.monotonic()
@@ -122,22 +128,6 @@ def remove_dead_files(files: dict[str, int]) -> list[str]:
     return removed
 
 
-def call_until_answered(ros: RosClient, request: Any, attempts: int, call_timeout: float) -> tuple[Any, int, float]:
-    """Calls ``sample_completions`` until it answers, as a client that re-sends on timeout does (a request sent
-    before the client matched a restarted server is lost). Returns (response, attempts used, seconds of the
-    answered attempt); raises TimeoutError after ``attempts`` unanswered ones."""
-    from pssnet_interfaces.srv import SampleCompletions
-
-    service = ros.service(SampleCompletions, SAMPLE_SERVICE, call_timeout * attempts)
-    for attempt in range(1, attempts + 1):
-        t0 = time.perf_counter()
-        try:
-            return ros.call(service, request, call_timeout), attempt, time.perf_counter() - t0
-        except TimeoutError:
-            continue
-    raise TimeoutError(f"{SAMPLE_SERVICE}: no answer to {attempts} attempts of {call_timeout:g} s")
-
-
 # ------------------------------------------------------------------------------------ (a) node killed
 @dataclass
 class NodeKill:
@@ -160,8 +150,9 @@ class NodeKill:
             the rest when the participant's lease expires), "replaced" (Fast DDS re-created a port of that
             name) or "left" (still mapped by a live peer).
         restart_ready_s: the new node's start -> "ready".
-        attempts: calls the new node needed to answer (a request sent before discovery matched is lost).
-        served_ms: latency of the answered call; served: it succeeded.
+        resent_answered: a request sent by :meth:`RosClient.call_until_answered` right after the kill, while
+            no node ran, was answered with success by the restarted node; attempts: the attempts it took;
+            served_ms: its first attempt -> the answer (includes the restart).
     """
 
     in_flight_s: float
@@ -176,9 +167,9 @@ class NodeKill:
     removed_by_node: list[str]
     fates: dict[str, str]
     restart_ready_s: float
+    resent_answered: bool
     attempts: int
     served_ms: float
-    served: bool
 
 
 def _kill(process: RosProcess) -> float:
@@ -191,9 +182,10 @@ def _kill(process: RosProcess) -> float:
 
 
 def kill_node_mid_call(ros: RosClient, node: RosProcess, restart: Callable[[], RosProcess], call_timeout: float,
-                       timeout: float = 60.0, watch_server_s: float = 0.0, backdate: bool = False
-                       ) -> tuple[NodeKill, RosProcess]:
-    """kill -9 of ``node`` while it works on a heavy request; then ``restart()`` (a ready node) and call again.
+                       timeout: float = 60.0, watch_server_s: float = 0.0, backdate: bool = False,
+                       resend_timeout: float = 10.0) -> tuple[NodeKill, RosProcess]:
+    """kill -9 of ``node`` while it works on a heavy request; a re-sending client sends a light request while no
+    node runs (attempts ``resend_timeout`` s apart); then ``restart()`` (a ready node), which must answer it.
 
     The new node removes only files older than its grace period (:data:`SHM_GRACE_S`): this waits for the
     killed node's files to be that old before restarting, or with ``backdate`` (a test's shortcut) sets their
@@ -204,9 +196,13 @@ def kill_node_mid_call(ros: RosClient, node: RosProcess, restart: Callable[[], R
 
     service = ros.service(SampleCompletions, SAMPLE_SERVICE, timeout)
     calls = ros.stats(timeout)["service_calls"]
-    call = BackgroundCall(service, scene_request(HEAVY_SAMPLES), call_timeout)
+    call = BackgroundCall(lambda: RosClient.call(service, scene_request(HEAVY_SAMPLES), call_timeout))
     wait_until(lambda: ros.stats(timeout)["service_calls"] > calls, timeout, "the node working on the request")
     killed_at = _kill(node)
+    light = scene_request(LIGHT_SAMPLES)
+    attempts = max(3, int((SHM_GRACE_S + 3 * timeout) / resend_timeout))  # outlasts the wait and the restart
+    resent = BackgroundCall(lambda: ros.call_until_answered(SampleCompletions, SAMPLE_SERVICE, light,
+                                                            resend_timeout, attempts))
     server_gone_s = None
     if watch_server_s > 0:
         try:
@@ -239,11 +235,9 @@ def kill_node_mid_call(ros: RosClient, node: RosProcess, restart: Callable[[], R
     removed_by_node = sorted(path for paths in logged for path in paths)
     fates = {path: ("left" if current.get(path) == inode else "removed by the new node" if path in removed_by_node
                     else "replaced" if path in current else "removed by Fast DDS") for path, inode in owned.items()}
-    try:
-        response, attempts, seconds = call_until_answered(ros, scene_request(LIGHT_SAMPLES), 3, 10.0)
-        served, served_ms = bool(response.success), seconds * 1000
-    except TimeoutError:
-        served, served_ms, attempts = False, float("nan"), 3
+    resent.wait(attempts * resend_timeout + timeout)
+    response, used = resent.response if resent.response is not None else (None, attempts)
+    served_ms = (resent.finished_at - resent.sent_at) * 1000 if resent.finished_at else float("nan")
     report = NodeKill(
         in_flight_s=killed_at - call.sent_at, call_timeout_s=call_timeout,
         answered=call.response is not None,
@@ -251,7 +245,8 @@ def kill_node_mid_call(ros: RosClient, node: RosProcess, restart: Callable[[], R
         error=f"{type(call.error).__name__}: {call.error}" if call.error else "", server_gone_s=server_gone_s,
         shm_files=owned, shm_bytes=owned_bytes, stale_before_restart=stale, removed_by_node=removed_by_node,
         fates=fates,
-        restart_ready_s=ready_s, attempts=attempts, served_ms=served_ms, served=served)
+        restart_ready_s=ready_s, resent_answered=response is not None and bool(response.success), attempts=used,
+        served_ms=served_ms)
     return report, new_node
 
 
@@ -445,6 +440,100 @@ def run_with_subscribers(ros: RosClient, listener: CompletionsListener, node: Ro
                 process.proc.send_signal(signal.SIGCONT)
             process.stop()
     return window, {mode: (process.lines()[-1:] or [""])[0] for mode, process in processes.items()}
+
+
+# ------------------------------------------------------------------ (e) lifecycle transitions mid-work
+#: Each scenario's transitions from active, and the way back to active ("shutdown" finalizes the node: its
+#: process is stopped with SIGINT and a new one started instead).
+TRANSITION_SEQUENCES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "deactivate": (("deactivate",), ("activate",)),
+    "cleanup": (("deactivate", "cleanup"), ("configure", "activate")),
+    "shutdown": (("shutdown",), ()),
+}
+WORK_KINDS = ("call", "topics")
+
+
+@dataclass
+class TransitionMidWork:
+    """What a lifecycle transition sent while the node worked did.
+
+    Attributes:
+        transition: a key of :data:`TRANSITION_SEQUENCES`; work: "call" (a heavy service call in flight) or
+            "topics" (a continuous-mode set in progress: the caller runs a camera and turned continuous on).
+        delay_s: the wait between the work starting and the transition being sent.
+        busy: the work was still in flight when the transition was sent.
+        accepted: every transition of the sequence succeeded; transition_s: first sent -> last answered.
+        answered: (call) a response arrived; status, success, message: its fields.
+        cancelled_sets: (topics) change of the node's ``sets_cancelled``.
+        node_alive: the process ran on after the transitions (a finalized node waits for SIGINT).
+        clean_exit: (shutdown) the finalized node's exit code after SIGINT was 0.
+        restored: active again (shutdown: a new process) and a light call answered with success.
+    """
+
+    transition: str
+    work: str
+    delay_s: float
+    busy: bool
+    accepted: bool
+    transition_s: float
+    answered: bool | None
+    status: int | None
+    success: bool | None
+    message: str
+    cancelled_sets: int
+    node_alive: bool
+    clean_exit: bool | None
+    restored: bool
+
+
+def transition_mid_work(ros: RosClient, node: RosProcess, transition: str, work: str,
+                        restart: Callable[[], RosProcess], delay_s: float = 0.0, timeout: float = 60.0
+                        ) -> tuple[TransitionMidWork, RosProcess]:
+    """Sends ``transition`` while ``node`` works on a heavy call or a topic set, then brings it back to active
+    (after "shutdown": stops it and calls ``restart()``). Returns the report and the node now serving."""
+    from pssnet_interfaces.srv import SampleCompletions
+
+    forward, back = TRANSITION_SEQUENCES[transition]
+    before = ros.stats(timeout)
+    call = None
+    if work == "call":
+        service = ros.service(SampleCompletions, SAMPLE_SERVICE, timeout)
+        call = BackgroundCall(lambda: RosClient.call(service, scene_request(HEAVY_SAMPLES), timeout))
+        wait_until(lambda: ros.stats(timeout)["service_calls"] > before["service_calls"], timeout,
+                   "the node working on the heavy call")
+    else:
+        wait_until(lambda: ros.stats(timeout)["sets_in_progress"] == 1, timeout, "a topic set in progress")
+    time.sleep(delay_s)
+    busy = call.finished_at is None if call is not None else ros.stats(timeout)["sets_in_progress"] == 1
+    started = time.monotonic()
+    accepted = all([ros.change_state(name, timeout=timeout) for name in forward])
+    transition_s = time.monotonic() - started
+    if call is not None:
+        call.wait(timeout)
+    alive = node.running()
+    cancelled = ros.stats(timeout)["sets_cancelled"] - before["sets_cancelled"] if alive else 0
+    clean_exit = None
+    if transition == "shutdown":
+        clean_exit = alive and node.stop() == 0
+        node = restart()
+    elif alive:
+        for name in back:  # a refused one shows as restored=False: the light call below finds no service
+            ros.change_state(name, timeout=timeout)
+    try:
+        response, _ = ros.call_until_answered(SampleCompletions, SAMPLE_SERVICE,
+                                              scene_request(LIGHT_SAMPLES, grasps=False), timeout / 3, 3)
+        restored = bool(response.success)
+    except TimeoutError:
+        restored = False
+    response = call.response if call is not None else None
+    report = TransitionMidWork(
+        transition=transition, work=work, delay_s=delay_s, busy=busy, accepted=accepted,
+        transition_s=transition_s, answered=None if call is None else response is not None,
+        status=None if response is None else int(response.status),
+        success=None if response is None else bool(response.success),
+        message="" if response is None else response.message, cancelled_sets=cancelled, node_alive=alive,
+        clean_exit=clean_exit, restored=restored)
+    return report, node
 
 
 # ---------------------------------------------------------------------------- the scenarios' processes

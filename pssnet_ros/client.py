@@ -95,6 +95,30 @@ class RosClient:
             self._clients[key] = client
         return client
 
+    def call_until_answered(self, srv_type: type, name: str, request: Any, attempt_timeout: float = 30.0,
+                            attempts: int = 5) -> tuple[Any, int]:
+        """Sends ``request`` to service ``name`` until an attempt is answered; returns (response, attempts used).
+
+        A request sent while the server is down, or after a restart before this client has matched the new
+        server, is lost without an error (DDS keeps a dead server "available" until its lease expires, ~20 s),
+        so an attempt that is not answered within ``attempt_timeout`` is sent again. Choose ``attempt_timeout``
+        above the call's own latency: a slow call re-sent is computed twice. Safe for the completion service,
+        which has no side effects: a repeated request is simply computed again.
+
+        Raises:
+            TimeoutError: ``attempts`` attempts went unanswered.
+        """
+        key = (srv_type, name)
+        if key not in self._clients:  # no discovery wait here: the server may be down right now
+            self._clients[key] = self.node.create_client(srv_type, name)
+        client = self._clients[key]
+        for attempt in range(1, attempts + 1):
+            try:
+                return self.call(client, request, attempt_timeout), attempt
+            except TimeoutError:
+                continue
+        raise TimeoutError(f"{name}: no answer to {attempts} attempts of {attempt_timeout:g} s")
+
     @staticmethod
     def call(client: Any, request: Any, timeout: float = 60.0) -> Any:
         """Sends ``request`` and waits for the response (TimeoutError after ``timeout`` s)."""
@@ -131,6 +155,29 @@ class RosClient:
         parameters = [Parameter(name, value=value).to_parameter_msg() for name, value in values.items()]
         request = SetParameters.Request(parameters=parameters)
         return self.call(self.service(SetParameters, f"{node}/set_parameters", timeout), request, timeout).results
+
+    def change_state(self, transition: str, node: str = NODE, timeout: float = 60.0) -> bool:
+        """Sends lifecycle ``transition`` ("configure", "activate", "deactivate", "cleanup", "shutdown" from
+        the node's current state, ...) to ``node``; True when the node made it."""
+        from lifecycle_msgs.msg import Transition
+        from lifecycle_msgs.srv import ChangeState
+
+        ids = {"configure": Transition.TRANSITION_CONFIGURE, "cleanup": Transition.TRANSITION_CLEANUP,
+               "activate": Transition.TRANSITION_ACTIVATE, "deactivate": Transition.TRANSITION_DEACTIVATE,
+               "unconfigured_shutdown": Transition.TRANSITION_UNCONFIGURED_SHUTDOWN,
+               "inactive_shutdown": Transition.TRANSITION_INACTIVE_SHUTDOWN,
+               "active_shutdown": Transition.TRANSITION_ACTIVE_SHUTDOWN}
+        if transition == "shutdown":
+            transition = f"{self.lifecycle_state(node, timeout)}_shutdown"
+        request = ChangeState.Request(transition=Transition(id=ids[transition]))
+        return bool(self.call(self.service(ChangeState, f"{node}/change_state", timeout), request, timeout).success)
+
+    def lifecycle_state(self, node: str = NODE, timeout: float = 30.0) -> str:
+        """The lifecycle state of ``node``: "unconfigured", "inactive", "active", "finalized", ..."""
+        from lifecycle_msgs.srv import GetState
+
+        return self.call(self.service(GetState, f"{node}/get_state", timeout), GetState.Request(),
+                         timeout).current_state.label
 
     @staticmethod
     def wait_for_subscribers(publishers: list, timeout: float = 30.0) -> None:

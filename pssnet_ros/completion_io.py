@@ -6,6 +6,7 @@ computed offline from a bag is, field for field, what the node would have publis
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -84,16 +85,18 @@ def load_pipeline(values: dict[str, Any]) -> CompletionPipeline:
 
 
 def complete_messages(pipeline: CompletionPipeline, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo,
-                      depth_scale: float, num_samples: int, compute_grasps: bool) -> tuple[PipelineResult, Header]:
+                      depth_scale: float, num_samples: int, compute_grasps: bool,
+                      should_stop: Callable[[], bool] | None = None) -> tuple[PipelineResult, Header]:
     """Converts one depth/mask/camera_info set and completes it; returns the result and the header outputs carry.
 
     Raises:
         ValueError: a message cannot be converted or the pipeline refuses the input (the message says why).
+        RunCancelled: ``should_stop`` returned True between the pipeline's steps.
     """
     depth = conversions.depth_to_metres(depth_msg, depth_scale)
     mask = conversions.mask_to_numpy(mask_msg)
     intrinsics = conversions.camera_info_to_intrinsics(info_msg)
-    return pipeline.run(depth, mask, intrinsics, num_samples, compute_grasps), depth_msg.header
+    return pipeline.run(depth, mask, intrinsics, num_samples, compute_grasps, should_stop), depth_msg.header
 
 
 def grasp_fields(result: PipelineResult) -> tuple[list[Pose], list[float], list[float]]:

@@ -46,13 +46,15 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.service import Service
 from rclpy.subscription import Subscription
+from rclpy.timer import Timer
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
-from pssnet_core.pipeline import CompletionPipeline, PipelineResult, up_vector_warning
+from pssnet_core.pipeline import CompletionPipeline, ModelOutputError, PipelineResult, RunCancelled, up_vector_warning
 from pssnet_ros.completion_io import (
     OUTPUT_TOPICS,
     STREAMS,
@@ -73,6 +75,11 @@ from pssnet_ros.sync import StampSynchronizer, SyncedSet
 NODE_NAME = "pssnet"
 WARN_THROTTLE_S = 2.0
 DIAGNOSTICS_PERIOD_S = 1.0
+#: Continuous mode's timer: how often it offers the newest set a start (the slot keeps to max_rate_hz, <= 100 Hz).
+CONTINUOUS_TICK_S = 0.01
+#: What a call stopped by a lifecycle transition answers.
+CANCELLED_MESSAGE = ("cancelled: the node left the active state during the call (deactivate, cleanup or shutdown); "
+                     "call again once it is active")
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 #: Best effort + volatile matches both best-effort (sensor data) and reliable publishers.
@@ -95,8 +102,16 @@ class StartupError(RuntimeError):
     """The node cannot start (bad parameters, missing or corrupt model); the message says why."""
 
 
+Status = SampleCompletions.Response  # the status constants: Status.STATUS_OK, ...
+
+
 class InputError(ValueError):
-    """A request or a topic set cannot be used (no data yet, stale, unsynchronised stamps)."""
+    """A request or a topic set cannot be used (no data yet, stale, unsynchronised stamps, no model); ``status``
+    is the service's code for it."""
+
+    def __init__(self, message: str, status: int = Status.STATUS_INVALID_INPUT) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 class CompletionNode(LifecycleNode):
@@ -108,20 +123,24 @@ class CompletionNode(LifecycleNode):
         # Guards the counters, the latest set and the slot's put/done, so that stats() is one consistent snapshot.
         self._lock = threading.Lock()
         self._counters = {"sets_synchronised": 0, "sets_processed": 0, "sets_dropped_stale": 0,
-                          "sets_dropped_invalid": 0, "service_calls": 0, "service_failures": 0}
+                          "sets_dropped_invalid": 0, "sets_cancelled": 0, "service_calls": 0,
+                          "service_failures": 0}
         self._latest: SyncedSet | None = None  # newest synchronised set (the service's default input)
         self.pipeline: CompletionPipeline | None = None  # loaded on configure, dropped on cleanup
         self._configure_error = ""
         self._up_disagreement_deg = math.nan  # of the last input the pipeline checked (NaN: not checked)
         self._active = False
-        self._endpoints: list[Any] = []  # subscriptions and the sample service: they exist while active
+        # Set when the node leaves the active state: calls and topic sets in flight stop at their next step.
+        self._stopping = threading.Event()
+        self._endpoints: list[Subscription | Service] = []  # subscriptions and the sample service, while active
+        self._continuous_timer: Timer | None = None  # while active with continuous on
         self._outputs: dict[str, Any] = {}  # lifecycle publishers: created on configure, enabled while active
         try:
             self._values = self._declare()
         except StartupError:
             self.destroy_node()
             raise
-        # Continuous mode: the worker completes the newest pending set at most max_rate_hz; a newer set replaces
+        # Continuous mode: a timer completes the newest pending set at most max_rate_hz; a newer set replaces
         # an unprocessed one (one slot: bounded memory, no queue). Paused unless active.
         self._slot: NewestSlot[SyncedSet] = NewestSlot(self._values["max_rate_hz"], paused=True)
         self._sync = StampSynchronizer(STREAMS, self._values["sync_tolerance"], queue_size=SYNC_QUEUE_SIZE)
@@ -132,8 +151,6 @@ class CompletionNode(LifecycleNode):
         self.create_service(Trigger, "~/get_stats", self._on_get_stats, callback_group=self._topics_group)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, callback_group=self._topics_group)
-        self._worker = threading.Thread(target=self._continuous_loop, name="pssnet_continuous", daemon=True)
-        self._worker.start()
         if self._values["autostart"]:
             self._start()
 
@@ -207,6 +224,7 @@ class CompletionNode(LifecycleNode):
         return SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._stopping.clear()
         for stream, msg_type in (("depth", Image), ("mask", Image), ("camera_info", CameraInfo)):
             self._endpoints.append(self.create_subscription(
                 msg_type, stream, lambda m, stream=stream: self._on_input(stream, m), INPUT_QOS,
@@ -218,6 +236,7 @@ class CompletionNode(LifecycleNode):
         with self._lock:
             self._active = True
             self._slot.paused = not self._values["continuous"]
+        self._update_continuous_timer()
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -240,6 +259,13 @@ class CompletionNode(LifecycleNode):
         return SUCCESS
 
     def _close_endpoints(self) -> None:
+        """Stops the work in flight and closes the inputs, the service and the continuous timer.
+
+        A call in flight is answered (cancelled at its next step) before its service goes: rclpy sends the
+        response after the callback returns, through the service's handle, and a handle destroyed in between
+        raised InvalidHandle out of the executor and ended the process.
+        """
+        self._stopping.set()
         with self._lock:
             self._active = False
             self._slot.paused = True
@@ -247,8 +273,36 @@ class CompletionNode(LifecycleNode):
             if isinstance(endpoint, Subscription):
                 self.destroy_subscription(endpoint)
             else:
-                self.destroy_service(endpoint)
+                self._destroy_when_idle(endpoint, self.destroy_service)
         self._endpoints = []
+        self._update_continuous_timer()
+
+    def _destroy_when_idle(self, entity: Service | Timer, destroy: Any) -> None:
+        """Destroys ``entity`` once no callback of it runs, holding its (mutually exclusive) callback group so
+        that none starts meanwhile; the executor then skips work it had already scheduled for it."""
+        group = entity.callback_group
+        waiting_since = time.monotonic()
+        told = False
+        while not group.beginning_execution(entity):  # a call or a topic set is running or sending its answer
+            if not told and time.monotonic() - waiting_since > 1.0:
+                told = True
+                self.get_logger().info("waiting for the work in flight to stop at its next step (a network pass "
+                                       "cannot be interrupted)")
+            time.sleep(0.005)
+        try:
+            destroy(entity)
+        finally:
+            group.ending_execution(entity)
+
+    def _update_continuous_timer(self) -> None:
+        """The continuous mode's timer exists exactly while the node is active with ``continuous`` on."""
+        wanted = self._active and self._values["continuous"]
+        if wanted and self._continuous_timer is None:
+            self._continuous_timer = self.create_timer(CONTINUOUS_TICK_S, self._continuous_tick,
+                                                       callback_group=MutuallyExclusiveCallbackGroup())
+        elif not wanted and self._continuous_timer is not None:
+            self._destroy_when_idle(self._continuous_timer, self.destroy_timer)
+            self._continuous_timer = None
 
     def _release(self) -> None:
         for publisher in self._outputs.values():
@@ -288,6 +342,7 @@ class CompletionNode(LifecycleNode):
         with self._lock:
             self._slot.max_rate_hz = self._values["max_rate_hz"]
             self._slot.paused = not (self._active and self._values["continuous"])
+        self._update_continuous_timer()
 
     # ------------------------------------------------------------------------------------------ topics
     def _count(self, key: str, n: int = 1) -> int:
@@ -308,8 +363,8 @@ class CompletionNode(LifecycleNode):
     def _age_s(self, synced: SyncedSet) -> float:
         return (self.get_clock().now().nanoseconds - synced.stamp_ns) * 1e-9
 
-    def _continuous_loop(self) -> None:
-        while (synced := self._slot.take()) is not None:
+    def _continuous_tick(self) -> None:
+        if (synced := self._slot.try_take()) is not None:
             self._complete_topic_set(synced)
 
     def _finish(self, outcome: str) -> int:
@@ -332,12 +387,15 @@ class CompletionNode(LifecycleNode):
             result, header = self._run(synced.messages["depth"], synced.messages["mask"],
                                        synced.messages["camera_info"], 0, self._values["continuous_grasps"])
             self._publish(result, header)
+        except RunCancelled:
+            self._finish("sets_cancelled")
+            return
         except ValueError as error:
             count = self._finish("sets_dropped_invalid")
             self.get_logger().warning(f"dropped an input set ({count} so far): {error}",
                                       throttle_duration_sec=WARN_THROTTLE_S)
             return
-        except Exception as error:  # never let one bad set kill the worker
+        except Exception as error:  # never let one bad set end continuous mode
             count = self._finish("sets_dropped_invalid")
             self.get_logger().error(f"completion failed ({count} dropped so far): {type(error).__name__}: {error}\n"
                                     f"{traceback.format_exc()}", throttle_duration_sec=WARN_THROTTLE_S)
@@ -358,9 +416,9 @@ class CompletionNode(LifecycleNode):
              compute_grasps: bool) -> tuple[PipelineResult, Header]:
         pipeline = self.pipeline
         if pipeline is None:
-            raise InputError("the node is not configured (no model loaded)")
+            raise InputError("the node is not configured (no model loaded)", Status.STATUS_NOT_READY)
         result, header = complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"],
-                                           num_samples, compute_grasps)
+                                           num_samples, compute_grasps, self._stopping.is_set)
         self._up_disagreement_deg = result.up_disagreement_deg
         if warning := self.up_warning():
             self.get_logger().warning(f"up_vector looks wrong: {warning}", throttle_duration_sec=WARN_THROTTLE_S)
@@ -377,12 +435,12 @@ class CompletionNode(LifecycleNode):
             if synced is None:
                 names = ", ".join(self.resolve_topic_name(s) for s in STREAMS)
                 raise InputError(f"request has no depth image and no synchronised set has arrived on {names} "
-                                 f"yet (sync_tolerance {self._values['sync_tolerance']} s)")
+                                 f"yet (sync_tolerance {self._values['sync_tolerance']} s)", Status.STATUS_NO_INPUT)
             max_age = self._values["max_input_age"]
             age = self._age_s(synced)
             if max_age > 0 and age > max_age:
                 raise InputError(f"the latest synchronised input is stale: {age:.2f} s old, "
-                                 f"max_input_age {max_age} s")
+                                 f"max_input_age {max_age} s", Status.STATUS_NO_INPUT)
             return synced.messages["depth"], synced.messages["mask"], synced.messages["camera_info"]
         tolerance = self._values["sync_tolerance"]
         depth_stamp = stamp_ns(request.depth.header)
@@ -404,18 +462,21 @@ class CompletionNode(LifecycleNode):
             response.header = depth_msg.header
             result, header = self._run(depth_msg, mask_msg, info_msg, int(request.num_samples),
                                        bool(request.compute_grasps))
+        except RunCancelled:
+            return self._refuse(response, Status.STATUS_CANCELLED, CANCELLED_MESSAGE)
         except ValueError as error:
+            status = (error.status if isinstance(error, InputError) else Status.STATUS_MODEL_FAILURE
+                      if isinstance(error, ModelOutputError) else Status.STATUS_INVALID_INPUT)
             count = self._count("service_failures")
-            response.success, response.message = False, str(error)
             self.get_logger().warning(f"sample_completions refused ({count} so far): {error}",
                                       throttle_duration_sec=WARN_THROTTLE_S)
-            return response
+            return self._refuse(response, status, str(error), counted=True)
         except Exception as error:  # an answer even for a bug: the caller must not hang
-            self._count("service_failures")
-            response.success, response.message = False, f"internal error: {type(error).__name__}: {error}"
             self.get_logger().error(f"sample_completions failed: {traceback.format_exc()}")
-            return response
+            return self._refuse(response, Status.STATUS_INTERNAL_ERROR,
+                                f"internal error: {type(error).__name__}: {error}")
         fill_response(response, result, header)
+        response.status = Status.STATUS_OK
         self._health.completed(time.perf_counter() - t0)
         points = sum(len(c) for c in result.completions)
         ms = {name: seconds * 1000 for name, seconds in result.timings.items()}
@@ -423,6 +484,13 @@ class CompletionNode(LifecycleNode):
                             f"{result.seed}, {(time.perf_counter() - t0) * 1000:.0f} ms (observation "
                             f"{ms['observe']:.1f}, network {ms['network']:.1f}, grasps {ms['grasps']:.1f} ms)"
                             + (f"; {result.note}" if result.note else ""))
+        return response
+
+    def _refuse(self, response: SampleCompletions.Response, status: int, message: str,
+                counted: bool = False) -> SampleCompletions.Response:
+        if not counted:
+            self._count("service_failures")
+        response.status, response.success, response.message = status, False, message
         return response
 
     def _on_get_stats(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -450,10 +518,11 @@ class CompletionNode(LifecycleNode):
 
         ``sets_synchronised`` (all synchronised sets), ``sets_processed`` (completed and published in continuous
         mode), ``sets_dropped_superseded`` / ``_stale`` / ``_invalid``, ``sets_pending`` and ``sets_in_progress``
-        (0 or 1 each), ``service_calls``, ``service_failures``, ``messages_received``, ``messages_unmatched``,
-        and ``latest_set_stamp_ns`` (stamp of the newest synchronised set, 0 before the first). While continuous
-        mode is on, every synchronised set is accounted for: synchronised = processed + superseded + stale +
-        invalid + pending + in_progress.
+        (0 or 1 each), ``sets_cancelled`` (stopped by a lifecycle transition), ``service_calls``,
+        ``service_failures``, ``messages_received``, ``messages_unmatched``, and ``latest_set_stamp_ns`` (stamp
+        of the newest synchronised set, 0 before the first). While continuous mode is on, every synchronised set
+        is accounted for: synchronised = processed + superseded + stale + invalid + cancelled + pending +
+        in_progress.
         """
         with self._lock:
             stats = dict(self._counters)
@@ -466,10 +535,8 @@ class CompletionNode(LifecycleNode):
         return stats
 
     def destroy_node(self) -> None:
-        if hasattr(self, "_worker"):
-            self._slot.close()
-            if self._worker.is_alive() and self._worker is not threading.current_thread():
-                self._worker.join(timeout=10.0)
+        if getattr(self, "_active", False):
+            self._close_endpoints()
         super().destroy_node()
 
 

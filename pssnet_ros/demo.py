@@ -63,7 +63,7 @@ def call_until_ready(ros: RosClient, client, request, timeout: float):
         latency = time.perf_counter() - t0
         if response.success:
             return response, latency
-        if "no synchronised set has arrived" not in response.message or time.monotonic() > deadline:
+        if response.status != response.STATUS_NO_INPUT or time.monotonic() > deadline:
             raise DemoError(f"the service answered success=false: {response.message}")
         time.sleep(0.2)  # the camera's first frame is on its way
 

@@ -1,11 +1,14 @@
-"""The continuous mode's input slot: the newest pending item, handed to one worker at most ``max_rate_hz``.
+"""The continuous mode's input slot: the newest pending item, handed out at most ``max_rate_hz``.
 
 ROS-free (no rclpy) and with an injectable clock, so that its rules are tested exactly, without DDS or sleeps:
 
 - one slot: a newer item replaces an unprocessed one, which is counted as superseded (bounded memory, no
-  queue, and the worker always gets the newest input);
+  queue, and the taker always gets the newest input);
 - starts are at least ``1 / max_rate_hz`` apart (start to start);
-- paused: an item is kept but not handed out; closed: :meth:`NewestSlot.take` returns None at once.
+- paused: an item is kept but not handed out.
+
+Nothing here blocks: the node's continuous-mode timer asks :meth:`NewestSlot.try_take` on each tick, so the
+work runs as an executor callback that a lifecycle transition can wait for.
 
 The counters (:class:`SlotStats`) are read atomically, so a caller can account for every item put: it was
 superseded, is pending, is in progress, or was started and finished (``started - in_progress``).
@@ -15,28 +18,11 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Generic, Protocol, TypeVar
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
-
-
-class Clock(Protocol):
-    """Time source of a :class:`NewestSlot`: ``now`` in seconds, ``wait`` on its condition for up to ``timeout``."""
-
-    def now(self) -> float: ...
-
-    def wait(self, condition: threading.Condition, timeout: float | None) -> None: ...
-
-
-class MonotonicClock:
-    """The real clock: ``time.monotonic`` and a plain condition wait."""
-
-    def now(self) -> float:
-        return time.monotonic()
-
-    def wait(self, condition: threading.Condition, timeout: float | None) -> None:
-        condition.wait(timeout)
 
 
 @dataclass(frozen=True)
@@ -45,10 +31,10 @@ class SlotStats:
 
     Attributes:
         offered: items put.
-        superseded: items replaced by a newer one before a worker took them.
-        started: items handed to the worker.
+        superseded: items replaced by a newer one before the taker got them.
+        started: items handed out.
         pending: 1 while an item waits in the slot.
-        in_progress: 1 between :meth:`NewestSlot.take` and :meth:`NewestSlot.done`.
+        in_progress: 1 between :meth:`NewestSlot.try_take` handing one out and :meth:`NewestSlot.done`.
     """
 
     offered: int
@@ -59,23 +45,22 @@ class SlotStats:
 
 
 class NewestSlot(Generic[T]):
-    """Holds the newest item for one worker thread, which takes it no more often than ``max_rate_hz``.
+    """Holds the newest item for one taker, which gets it no more often than ``max_rate_hz``.
 
     Args:
         max_rate_hz: largest start rate (> 0).
         paused: start paused (items are kept, not handed out).
-        clock: time source (default :class:`MonotonicClock`).
+        clock: seconds now (default ``time.monotonic``).
     """
 
-    def __init__(self, max_rate_hz: float, paused: bool = False, clock: Clock | None = None) -> None:
-        self._clock = clock or MonotonicClock()
-        self._cond = threading.Condition()
+    def __init__(self, max_rate_hz: float, paused: bool = False, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self._lock = threading.Lock()
         self._item: T | None = None
         self._has_item = False  # an item may itself be None
         self._period = 0.0
         self.max_rate_hz = max_rate_hz
         self._paused = paused
-        self._closed = False
         self._busy = False
         self._last_start: float | None = None
         self._offered = self._superseded = self._started = 0
@@ -88,9 +73,8 @@ class NewestSlot(Generic[T]):
     def max_rate_hz(self, value: float) -> None:
         if not value > 0:
             raise ValueError(f"max_rate_hz must be positive, got {value}")
-        with self._cond:
+        with self._lock:
             self._period = 1.0 / float(value)
-            self._cond.notify_all()  # a waiting worker recomputes its wait
 
     @property
     def paused(self) -> bool:
@@ -98,32 +82,24 @@ class NewestSlot(Generic[T]):
 
     @paused.setter
     def paused(self, value: bool) -> None:
-        with self._cond:
+        with self._lock:
             self._paused = bool(value)
-            self._cond.notify_all()
 
     def put(self, item: T) -> bool:
-        """Offers the newest item; returns True when it replaced one that no worker had taken."""
-        with self._cond:
+        """Offers the newest item; returns True when it replaced one not yet handed out."""
+        with self._lock:
             replaced = self._has_item
             self._item, self._has_item = item, True
             self._offered += 1
             self._superseded += int(replaced)
-            self._cond.notify_all()
             return replaced
 
-    def wait_time(self) -> float | None:
-        """Seconds until :meth:`try_take` would hand out the pending item (0 = now); None when nothing is
-        pending, or the slot is paused or closed."""
-        with self._cond:
-            return self._wait_time()
-
     def _wait_time(self) -> float | None:
-        if self._closed or self._paused or not self._has_item:
+        if self._paused or not self._has_item:
             return None
         if self._last_start is None:
             return 0.0
-        return max(0.0, self._last_start + self._period - self._clock.now())
+        return max(0.0, self._last_start + self._period - self._clock())
 
     def try_take(self) -> T | None:
         """Hands out the pending item if the rate limit allows it now, else returns None (never blocks).
@@ -131,43 +107,23 @@ class NewestSlot(Generic[T]):
         Raises:
             RuntimeError: the previous item is still in progress (:meth:`done` not called).
         """
-        with self._cond:
-            return self._try_take()
-
-    def _try_take(self) -> T | None:
-        if self._wait_time() != 0.0:
-            return None
-        if self._busy:
-            raise RuntimeError("take() before done(): one worker completes one item at a time")
-        item, self._item, self._has_item = self._item, None, False
-        self._last_start = self._clock.now()
-        self._started += 1
-        self._busy = True
-        return item
-
-    def take(self) -> T | None:
-        """Blocks until an item may start, and hands it out; returns None once the slot is closed."""
-        with self._cond:
-            while not self._closed:
-                wait = self._wait_time()
-                if wait == 0.0:
-                    return self._try_take()
-                # Woken early by put/pause/rate/close: the loop recomputes what to wait for.
-                self._clock.wait(self._cond, wait)
-            return None
+        with self._lock:
+            if self._wait_time() != 0.0:
+                return None
+            if self._busy:
+                raise RuntimeError("try_take() before done(): one item is completed at a time")
+            item, self._item, self._has_item = self._item, None, False
+            self._last_start = self._clock()
+            self._started += 1
+            self._busy = True
+            return item
 
     def done(self) -> None:
-        """The worker finished the item it took last."""
-        with self._cond:
+        """The taker finished the item it took last."""
+        with self._lock:
             self._busy = False
 
-    def close(self) -> None:
-        """Wakes the worker; :meth:`take` returns None from now on (a pending item is left unprocessed)."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
     def stats(self) -> SlotStats:
-        with self._cond:
+        with self._lock:
             return SlotStats(offered=self._offered, superseded=self._superseded, started=self._started,
                              pending=int(self._has_item), in_progress=int(self._busy))

@@ -17,7 +17,7 @@ from test_node_helpers import render_mug_scene, tiny_checkpoint
 from pssnet_core.inference import DEFAULT_CHECKPOINT
 from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, load_verified, read_checkpoint
 from pssnet_core.models.integrity import IntegrityError, check_samples, weights_digest
-from pssnet_core.pipeline import CompletionPipeline, PipelineConfig
+from pssnet_core.pipeline import CompletionPipeline, ModelOutputError, PipelineConfig
 
 _spec = importlib.util.spec_from_file_location("integrity_bench", Path(__file__).parents[1] / "benchmarks" /
                                                "integrity_bench.py")
@@ -140,5 +140,5 @@ def test_a_call_whose_samples_are_empty_fails_instead_of_succeeding_with_nothing
     assert pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=False).num_samples == 4
     with torch.no_grad():
         pipeline.completer.model.decoder.deconv[-1].bias.fill_(-60000.0)
-    with pytest.raises(IntegrityError, match=r"sample 0 of 4 is empty; the model or its weights are broken"):
+    with pytest.raises(ModelOutputError, match=r"sample 0 of 4 is empty; the model or its weights are broken"):
         pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=False)

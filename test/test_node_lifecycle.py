@@ -11,8 +11,6 @@ import threading
 
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from lifecycle_msgs.msg import State, Transition
-from lifecycle_msgs.srv import ChangeState, GetState
 from pssnet_interfaces.srv import SampleCompletions
 from test_node_helpers import (
     domain_for,
@@ -24,8 +22,11 @@ from test_node_helpers import (
     tiny_checkpoint,
 )
 
+from pssnet_ros import chaos
 from pssnet_ros.client import NODE, SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_ros.completion_node import CANCELLED_MESSAGE, Status
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
+from pssnet_ros.processes import RosProcess, ros_env
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(11)
@@ -77,28 +78,19 @@ class DiagnosticsListener:
         return wait_until(matching, timeout, f"/diagnostics reporting state {state!r}")
 
 
-def get_state(ros: RosClient) -> str:
-    return ros.call(ros.service(GetState, f"{NODE}/get_state"), GetState.Request()).current_state.label
-
-
-def change_state(ros: RosClient, transition: int, timeout: float = 60.0) -> bool:
-    request = ChangeState.Request(transition=Transition(id=transition))
-    return bool(ros.call(ros.service(ChangeState, f"{NODE}/change_state"), request, timeout).success)
-
-
 def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoint):
     diagnostics = DiagnosticsListener(ros)
     # A client from the start, so that by the time it matters it has discovered whatever server there is
     # (the graph lists services that only have clients too, so server_is_ready is the test).
     service = ros.node.create_client(SampleCompletions, SAMPLE_SERVICE)
-    assert get_state(ros) == "unconfigured"
+    assert ros.lifecycle_state() == "unconfigured"
     seen = diagnostics.wait_for_state("unconfigured")
     assert seen["level"] == DiagnosticStatus.WARN
 
     # A missing model: configure fails, the node stays unconfigured and says why (log and /diagnostics).
     mark = len(node.lines())
-    assert not change_state(ros, Transition.TRANSITION_CONFIGURE)
-    assert get_state(ros) == "unconfigured"
+    assert not ros.change_state("configure")
+    assert ros.lifecycle_state() == "unconfigured"
     assert any("configure failed" in line and "no checkpoint file" in line for line in node.lines(mark))
     failed = wait_until(lambda: (d := diagnostics.wait_for_state("unconfigured"))["level"]
                         == DiagnosticStatus.ERROR and d, 30, "an ERROR status")
@@ -106,15 +98,15 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
 
     # Fix the parameter (allowed while unconfigured) and retry.
     assert ros.set_parameters(model_path=str(checkpoint))[0].successful
-    assert change_state(ros, Transition.TRANSITION_CONFIGURE)
-    assert get_state(ros) == "inactive"
+    assert ros.change_state("configure")
+    assert ros.lifecycle_state() == "inactive"
     refused = ros.set_parameters(model_path="/elsewhere.pt")[0]
     assert not refused.successful and "only change while the node is unconfigured" in refused.reason
     assert ros.set_parameters(num_samples=3)[0].successful  # ordinary parameters change in any state
     assert not service.service_is_ready()
 
-    assert change_state(ros, Transition.TRANSITION_ACTIVATE)
-    assert get_state(ros) == "active"
+    assert ros.change_state("activate")
+    assert ros.lifecycle_state() == "active"
     scene = render_mug_scene(seed=3)  # a camera pitched 30 degrees: the true up_vector is not the default
     assert ros.set_parameters(up_vector=[float(v) for v in scene.up])[0].successful
     # Finite, but its length overflows: refused at set time, the node keeps the value above (checked below).
@@ -143,23 +135,72 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
     assert float(warned["up_vector vs support plane (deg)"]) == pytest.approx(30.0, abs=1.0)
     wait_until(lambda: any("up_vector looks wrong" in line for line in node.lines(mark)), 30, "the warning logged")
 
-    assert change_state(ros, Transition.TRANSITION_DEACTIVATE)
-    assert get_state(ros) == "inactive"
+    assert ros.change_state("deactivate")
+    assert ros.lifecycle_state() == "inactive"
     wait_until(lambda: not service.service_is_ready(), 30, "the sample service gone after deactivate")
-    assert change_state(ros, Transition.TRANSITION_CLEANUP)
-    assert get_state(ros) == "unconfigured"
+    assert ros.change_state("cleanup")
+    assert ros.lifecycle_state() == "unconfigured"
     assert ros.set_parameters(model_path=str(checkpoint))[0].successful  # unconfigured again: allowed
     # A transition the state machine does not have from here is refused, the state unchanged, the node alive
     # (plain rclpy lets this request end the node's spin).
-    assert not change_state(ros, Transition.TRANSITION_ACTIVATE)
-    assert get_state(ros) == "unconfigured"
-    assert not change_state(ros, Transition.TRANSITION_DEACTIVATE)
-    assert node.running and get_state(ros) == "unconfigured"
-    assert change_state(ros, Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
-    assert get_state(ros) == "finalized"
-    assert State.PRIMARY_STATE_FINALIZED == 4
-    assert node.running  # finalized is a state, not an exit: the process waits for SIGINT
+    assert not ros.change_state("activate")
+    assert ros.lifecycle_state() == "unconfigured"
+    assert not ros.change_state("deactivate")
+    assert node.running() and ros.lifecycle_state() == "unconfigured"
+    assert ros.change_state("unconfigured_shutdown")
+    assert ros.lifecycle_state() == "finalized"
+    assert node.running()  # finalized is a state, not an exit: the process waits for SIGINT
     assert node.stop() == 0
+
+
+def test_transitions_while_the_node_works_answer_the_call_and_keep_the_node(checkpoint):
+    """Deactivate, cleanup and shutdown sent while a heavy call computes or a topic set is completed: the call
+    is answered (cancelled at its next step, or done), the node lives on (after shutdown: stops cleanly), and
+    serves again. Each once here, at staggered moments; ``benchmarks/chaos_bench.py --only e`` runs them 50
+    times each (RELIABILITY.md)."""
+    domain = domain_for(15)
+    env = ros_env(domain)
+    up = chaos.scene_up_vector()
+
+    def start(continuous: bool = False) -> RosProcess:
+        params = dict(chaos.NODE_PARAMS, up_vector=up, threads=1, num_samples=chaos.HEAVY_SAMPLES,
+                      continuous=continuous, max_rate_hz=20.0)
+        process = RosProcess.python_module("pssnet_ros.completion_node", node_args(checkpoint, **params), env,
+                                           name="completion_node")
+        process.wait_for(r"ready: serving", timeout=120)
+        return process
+
+    node = start()
+    camera = None
+    reports = []
+    try:
+        with RosClient(domain, "lifecycle_work_client") as ros:
+            for work in chaos.WORK_KINDS:
+                if work == "topics":
+                    camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"], env,
+                                                      name="camera")
+                    camera.wait_for(r"publishing", 60)
+                    assert ros.set_parameters(continuous=True)[0].successful
+                for i, transition in enumerate(chaos.TRANSITION_SEQUENCES):
+                    report, node = chaos.transition_mid_work(ros, node, transition, work,
+                                                             lambda work=work: start(continuous=work == "topics"),
+                                                             delay_s=0.15 * i, timeout=120)
+                    reports.append(report)
+    finally:
+        if camera is not None:
+            camera.stop()
+        exit_code = node.stop()
+    assert exit_code == 0, node.output[-4000:]
+    for report in reports:
+        assert report.busy, report  # otherwise nothing was tested
+        assert report.accepted and report.node_alive and report.restored, report
+        assert report.clean_exit is not False, report
+        if report.work == "call":
+            assert report.answered, report
+            assert report.status in (Status.STATUS_OK, Status.STATUS_CANCELLED), report
+            assert report.success == (report.status == Status.STATUS_OK), report
+            assert report.success or report.message == CANCELLED_MESSAGE, report
+    assert any(r.work == "call" and not r.success for r in reports), "no call was cancelled: the test is too slow"
 
 
 def test_health_window_rate_and_percentiles():

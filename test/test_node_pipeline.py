@@ -20,7 +20,7 @@ from pssnet_core.geometry import (
     check_intrinsics,
 )
 from pssnet_core.inference import CompletionResult
-from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineInputError
+from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineInputError, RunCancelled
 from pssnet_core.support_plane import fit_support_plane
 
 
@@ -66,6 +66,26 @@ def test_outputs_are_voxel_centres_around_the_observed_points(scene):
     points, index = result.merged()
     assert len(points) == 3 * len(result.known_occupied) and set(index.tolist()) == {0, 1, 2}
     assert set(result.timings) == {"observe", "network", "centres", "grasps", "total"}
+
+
+def test_should_stop_ends_the_run_between_its_steps(scene):
+    pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(num_samples=3, up_vector=tuple(scene.up)))
+    asked: list[int] = []
+
+    def stop_at(step: int):
+        def should_stop() -> bool:
+            asked.append(step)
+            return len(asked) == step
+        return should_stop
+
+    with pytest.raises(RunCancelled, match="stopped before the network"):
+        pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=stop_at(1))
+    asked.clear()
+    with pytest.raises(RunCancelled, match="stopped before the grasps"):
+        pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=stop_at(2))
+    asked.clear()
+    result = pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=lambda: False)
+    assert result.num_samples == 3 and result.grasps is not None
 
 
 def test_real_model_seeds_and_sample_counts(tiny_pipeline, scene):

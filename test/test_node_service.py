@@ -70,7 +70,7 @@ def call(ros, service, request, timeout=60.0):
 def test_round_trip_returns_completions_in_the_request_frame(ros, service, scene, checkpoint):
     header = stamped_header(1234, 5678)
     response = call(ros, service, make_request(scene, header, num_samples=5))
-    assert response.success, response.message
+    assert response.success and response.status == response.STATUS_OK, response.message
     assert re.fullmatch(r"5 samples, \d+ voxels, 0 grasps, seed 0, \d+ ms \(observation [\d.]+, network [\d.]+, "
                         r"grasps 0\.0 ms\)", response.message), response.message
     assert response.header.frame_id == "camera_depth_optical_frame"
@@ -218,7 +218,7 @@ def test_every_bad_input_gets_an_exact_answer_and_the_node_keeps_serving(ros, se
     cases = bad_requests(scene)
     for name, request, pattern in cases:
         response = call(ros, service, request)
-        assert not response.success, name
+        assert not response.success and response.status == response.STATUS_INVALID_INPUT, name
         assert re.search(pattern, response.message), f"{name}: {response.message!r}"
         assert len(response.completions) == 0
     assert node.running()
@@ -228,7 +228,7 @@ def test_every_bad_input_gets_an_exact_answer_and_the_node_keeps_serving(ros, se
 
 def test_empty_depth_without_topic_input_is_explained(ros, service):
     response = call(ros, service, SampleCompletions.Request())
-    assert not response.success
+    assert not response.success and response.status == response.STATUS_NO_INPUT
     assert re.search(r"^request has no depth image and no synchronised set has arrived on /depth, /mask, "
                      r"/camera_info yet", response.message), response.message
 

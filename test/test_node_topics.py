@@ -201,9 +201,11 @@ def check_outputs(out: dict[str, list], stamps: list[int], count: int) -> None:
 
 def check_accounting(d: dict[str, int], elapsed_s: float) -> None:
     """Every synchronised set was completed, superseded by a newer one, or dropped (stale or invalid); none
-    is queued. Every start obeys the rate limit: starts are 1 / RATE_HZ apart, so within ``elapsed_s``."""
+    is queued or cancelled (no transition here).
+    Every start obeys the rate limit: starts are 1 / RATE_HZ apart, so within ``elapsed_s``."""
     assert d["sets_synchronised"] == (d["sets_processed"] + d["sets_dropped_superseded"] + d["sets_dropped_stale"]
                                       + d["sets_dropped_invalid"]), d
+    assert d["sets_cancelled"] == 0, d
     started = d["sets_processed"] + d["sets_dropped_stale"] + d["sets_dropped_invalid"]
     assert started <= np.floor(RATE_HZ * elapsed_s) + 1, f"{started} starts in {elapsed_s:.2f} s: rate limit broken"
 
