@@ -15,9 +15,11 @@ setup:
 demo: setup
 	$(PY) -m pssnet_ros.demo --out demo_output
 
-# pytest exits 5 when it collects no test: that is a failure here, like any other non-zero exit.
-test: setup
+lint: setup
 	$(VENV)/bin/ruff check pssnet_core pssnet_ros test benchmarks scripts launch
+
+# pytest exits 5 when it collects no test: that is a failure here, like any other non-zero exit.
+test: lint
 	$(VENV)/bin/pytest -q
 
 test-slow: setup

@@ -323,7 +323,7 @@ def test_grasps_are_ranked_camera_frame_poses_around_the_object(scene):
     pipeline = CompletionPipeline(TruthCompleter(scene, shape), config)
     result = pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=True)
     grasps = result.grasps
-    assert 1 <= len(grasps) <= 5 and grasps.num_completions == 4
+    assert 1 <= len(grasps) <= 5 and grasps.holds.shape[1] == 4
     assert np.all(np.diff(grasps.scores) <= 0) and grasps.scores[0] == 1.0  # the truth is graspable
     rotations = grasps.poses[:, :3, :3]
     np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rotations.shape),

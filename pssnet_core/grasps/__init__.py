@@ -5,7 +5,6 @@ One call from completions to ranked grasps::
     grasps = plan_grasps(occupancy, observation.pose, observation.points, GraspConfig())
     grasps.poses[0]        # (4, 4) best grasp in the camera frame
     grasps.scores[0]       # fraction of the completions it holds for
-    position, quaternion = grasps.position_quaternions()   # (K, 3), (K, 4) xyzw, for geometry_msgs/Pose
 
 Pose convention (that of ``pssnet_interfaces/srv/SampleCompletions``): the origin lies between the
 fingertips, z is the approach direction (the hand moves along +z onto the object), y is the closing axis,

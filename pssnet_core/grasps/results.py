@@ -68,10 +68,6 @@ class GraspSet:
     def __len__(self) -> int:
         return len(self.scores)
 
-    @property
-    def num_completions(self) -> int:
-        return int(self.holds.shape[1])
-
     def subset(self, index: np.ndarray | slice) -> GraspSet:
         """The grasps at ``index`` (keeps their order)."""
         index = np.arange(len(self))[index]
@@ -95,12 +91,6 @@ class GraspSet:
             raise GraspError(f"min_score must be in (0, 1], got {min_score}")
         sure = np.flatnonzero(self.scores >= min_score - 1e-6)
         return int(sure[np.argmax(self.secondary[sure])]) if len(sure) else None
-
-    def position_quaternions(self) -> tuple[np.ndarray, np.ndarray]:
-        """(K, 3) positions and (K, 4) unit quaternions (x, y, z, w) of :attr:`poses`."""
-        if len(self) == 0:
-            return np.zeros((0, 3)), np.zeros((0, 4))
-        return self.poses[:, :3, 3].copy(), Rotation.from_matrix(self.poses[:, :3, :3]).as_quat()
 
 
 @dataclass

@@ -27,14 +27,13 @@ from pssnet_core.models.config import (
     VAEConfig,
     VAEGANConfig,
     config_from_dict,
-    config_from_yaml,
 )
 from pssnet_core.models.registry import build_model, default_config, get_model_class, model_names
 
 __all__ = [
     "PRECISIONS", "CheckpointError", "CompletionModel", "ConfigError", "ModelConfig", "ModelInputError", "PSSNetConfig",
     "RecGANConfig",
-    "StepContext", "VAEConfig", "VAEGANConfig", "build_model", "config_from_dict", "config_from_yaml",
+    "StepContext", "VAEConfig", "VAEGANConfig", "build_model", "config_from_dict",
     "cpu_has_fast_bf16", "default_config", "export_checkpoint", "get_model_class", "load_checkpoint",
     "model_names", "read_checkpoint", "resolve_precision", "save_checkpoint",
 ]

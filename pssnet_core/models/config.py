@@ -227,11 +227,3 @@ def config_from_dict(data: dict[str, Any]) -> ModelConfig:
     except TypeError as error:
         raise ConfigError(f"bad config for model {cls.model!r}: {error}") from error
 
-
-def config_from_yaml(path: str | Path) -> ModelConfig:
-    """Reads a YAML file written by :meth:`ModelConfig.to_yaml` (or by hand)."""
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as error:
-        raise ConfigError(f"cannot read model config {path}: {error}") from error
-    return config_from_dict(data)

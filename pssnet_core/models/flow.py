@@ -143,10 +143,6 @@ class RealNVP(nn.Module):
             z = layer.inverse(z)
         return z
 
-    def log_prob(self, x: torch.Tensor) -> torch.Tensor:
-        """log p(x) under the flow with a standard-normal base, shape (B,)."""
-        return log_prob_from(*self(x))
-
     @torch.no_grad()
     def sample(self, num: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """Draws ``num`` data samples (eval-mode statistics)."""

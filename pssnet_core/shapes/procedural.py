@@ -63,7 +63,6 @@ SPLIT_RANGES: Mapping[str, tuple[int, int]] = MappingProxyType({
 
 # Chord error at a 5 cm radius: 0.2 mm, far below a 64^3 voxel (~3 mm); boolean cost grows with triangles.
 _REVOLVE_SEGMENTS = 36
-_SPHERE_SEGMENTS = 12  # handle tube cross-section
 
 
 class ShapeError(ValueError):
