@@ -42,7 +42,6 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -69,6 +68,7 @@ from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
 from pssnet_ros.newest_slot import NewestSlot
 from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, check_values, markdown_table, pipeline_config
 from pssnet_ros.processes import clean_stale_shm
+from pssnet_ros.rclpy_fixes import refuse_unknown_transitions
 from pssnet_ros.spinning import spin_until_shutdown
 from pssnet_ros.sync import StampSynchronizer, SyncedSet
 
@@ -119,7 +119,7 @@ class CompletionNode(LifecycleNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self._guard_change_state()
+        refuse_unknown_transitions(self)
         # Guards the counters, the latest set and the slot's put/done, so that stats() is one consistent snapshot.
         self._lock = threading.Lock()
         self._counters = {"sets_synchronised": 0, "sets_processed": 0, "sets_dropped_stale": 0,
@@ -153,26 +153,6 @@ class CompletionNode(LifecycleNode):
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, callback_group=self._topics_group)
         if self._values["autostart"]:
             self._start()
-
-    def _guard_change_state(self) -> None:
-        """Answers a transition the current state does not have with success=False instead of dying.
-
-        rclpy (7.1) raises RCLError out of the change_state service callback for such a request, which ends the
-        executor's spin: any client could stop the node with one bad request. The state is unchanged then.
-        """
-        service = self._service_change_state
-        change_state = service.callback
-
-        def change_state_or_refuse(request: Any, response: Any) -> Any:
-            try:
-                return change_state(request, response)
-            except _rclpy.RCLError as error:
-                self.get_logger().warning(f"refused lifecycle transition id {request.transition.id} "
-                                          f"{request.transition.label!r}: {error}")
-                response.success = False
-                return response
-
-        service.callback = change_state_or_refuse
 
     def _start(self) -> None:
         """configure + activate, as the plain node does; raises :class:`StartupError` with the reason."""
