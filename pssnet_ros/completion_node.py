@@ -1,10 +1,11 @@
 """completion_node: samples diverse plausible completions of a segmented object and ranks grasps across them.
 
 A managed (lifecycle) node, as ROS 2 drivers are: ``configure`` reads and checks the parameters and loads the
-model, ``activate`` opens the subscriptions and the service and enables the publishers, ``deactivate`` closes
-them, ``cleanup`` drops the model; a failed ``configure`` (bad parameter, missing model) leaves the node
-unconfigured, and it can be retried after fixing the parameter. With ``autostart`` (the default) the node
-configures and activates itself at start-up and exits with a one-line error if it cannot: the plain node.
+model, ``activate`` opens the subscriptions, enables the publishers and starts serving, ``deactivate`` stops
+the work in flight and closes them, ``cleanup`` drops the model; a failed ``configure`` (bad parameter,
+missing model) leaves the node unconfigured, and it can be retried after fixing the parameter. With
+``autostart`` (the default) the node configures and activates itself at start-up and exits with a one-line
+error if it cannot: the plain node.
 
 Interface (node name ``pssnet``; relative names are remappable):
 
@@ -12,8 +13,8 @@ Interface (node name ``pssnet``; relative names are remappable):
   synchronised by stamp within ``sync_tolerance``; best-effort QoS, so reliable and sensor-data publishers
   both connect.
 - serves ``~/sample_completions`` (pssnet_interfaces/srv/SampleCompletions) -> /pssnet/sample_completions
-  while active, and ``~/get_stats`` (std_srvs/Trigger: counters as JSON, see :meth:`CompletionNode.stats`)
-  in every state; the standard lifecycle services ``~/change_state``, ``~/get_state``, ...
+  (answering STATUS_NOT_ACTIVE unless active) and ``~/get_stats`` (std_srvs/Trigger: counters as JSON, see
+  :meth:`CompletionNode.stats`) in every state; the standard lifecycle services ``~/change_state``, ``~/get_state``, ...
 - publishes in continuous mode ``~/completions`` (PointCloud2 x, y, z + ``sample``), ``~/known_occupied``,
   ``~/grasps`` (PoseArray, best first), ``~/grasp_candidates`` (pssnet_interfaces/msg/GraspCandidates);
   and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) at 1 Hz in every state.
@@ -24,8 +25,10 @@ All outputs carry the input's header. The node only converts messages; the work 
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import math
+import signal
 import sys
 import threading
 import time
@@ -75,8 +78,8 @@ from pssnet_ros.sync import StampSynchronizer, SyncedSet
 NODE_NAME = "pssnet"
 WARN_THROTTLE_S = 2.0
 DIAGNOSTICS_PERIOD_S = 1.0
-#: Continuous mode's timer: how often it offers the newest set a start (the slot keeps to max_rate_hz, <= 100 Hz).
-CONTINUOUS_TICK_S = 0.01
+#: Shortest delay the continuous-mode timer is armed for (it fires when the pending set may start, else sleeps).
+CONTINUOUS_MIN_DELAY_NS = 1_000_000
 #: What a call stopped by a lifecycle transition answers.
 CANCELLED_MESSAGE = ("cancelled: the node left the active state during the call (deactivate, cleanup or shutdown); "
                      "call again once it is active")
@@ -132,7 +135,7 @@ class CompletionNode(LifecycleNode):
         self._active = False
         # Set when the node leaves the active state: calls and topic sets in flight stop at their next step.
         self._stopping = threading.Event()
-        self._endpoints: list[Subscription | Service] = []  # subscriptions and the sample service, while active
+        self._subscriptions: list[Subscription] = []  # the inputs, while active
         self._continuous_timer: Timer | None = None  # while active with continuous on
         self._outputs: dict[str, Any] = {}  # lifecycle publishers: created on configure, enabled while active
         try:
@@ -149,6 +152,13 @@ class CompletionNode(LifecycleNode):
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._topics_group = MutuallyExclusiveCallbackGroup()
         self.create_service(Trigger, "~/get_stats", self._on_get_stats, callback_group=self._topics_group)
+        # The sample service lives as long as the node and answers STATUS_NOT_ACTIVE unless active, as Nav2's
+        # servers reject goals while inactive: a client is told instead of timing out, and no transition
+        # destroys it while an answer may still be in transit (which lost 1 answer in 50 deactivations).
+        # Inference has its own group so that topic callbacks keep flowing while a request runs.
+        self._sample_service = self.create_service(
+            SampleCompletions, "~/sample_completions", self._on_sample_completions, qos_profile=SERVICE_QOS,
+            callback_group=MutuallyExclusiveCallbackGroup())
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, callback_group=self._topics_group)
         if self._values["autostart"]:
@@ -205,14 +215,10 @@ class CompletionNode(LifecycleNode):
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stopping.clear()
-        for stream, msg_type in (("depth", Image), ("mask", Image), ("camera_info", CameraInfo)):
-            self._endpoints.append(self.create_subscription(
-                msg_type, stream, lambda m, stream=stream: self._on_input(stream, m), INPUT_QOS,
-                callback_group=self._topics_group))
-        # Inference has its own group so that topic callbacks keep flowing while a request runs.
-        self._endpoints.append(self.create_service(SampleCompletions, "~/sample_completions",
-                                                   self._on_sample_completions, qos_profile=SERVICE_QOS,
-                                                   callback_group=MutuallyExclusiveCallbackGroup()))
+        self._subscriptions = [self.create_subscription(
+            msg_type, stream, lambda m, stream=stream: self._on_input(stream, m), INPUT_QOS,
+            callback_group=self._topics_group)
+            for stream, msg_type in (("depth", Image), ("mask", Image), ("camera_info", CameraInfo))]
         with self._lock:
             self._active = True
             self._slot.paused = not self._values["continuous"]
@@ -220,7 +226,7 @@ class CompletionNode(LifecycleNode):
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._close_endpoints()
+        self._stop_work()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -228,38 +234,37 @@ class CompletionNode(LifecycleNode):
         return SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._close_endpoints()
+        self._stop_work()
         self._release()
         return SUCCESS
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.get_logger().error(f"error in a transition from {state.label}; releasing everything, unconfigured")
-        self._close_endpoints()
+        self._stop_work()
         self._release()
         return SUCCESS
 
-    def _close_endpoints(self) -> None:
-        """Stops the work in flight and closes the inputs, the service and the continuous timer.
+    def _stop_work(self) -> None:
+        """Leaves the active state: closes the inputs, stops the call or topic set in flight at its next step
+        and waits until it has been answered (a call) or dropped (a set), and removes the continuous timer.
 
-        A call in flight is answered (cancelled at its next step) before its service goes: rclpy sends the
-        response after the callback returns, through the service's handle, and a handle destroyed in between
-        raised InvalidHandle out of the executor and ended the process.
+        Only then may the transition go on to release the model and the publishers: the work in flight uses
+        them, and an answer sent through a destroyed handle raised InvalidHandle out of the executor and ended
+        the process.
         """
         self._stopping.set()
         with self._lock:
             self._active = False
             self._slot.paused = True
-        for endpoint in self._endpoints:
-            if isinstance(endpoint, Subscription):
-                self.destroy_subscription(endpoint)
-            else:
-                self._destroy_when_idle(endpoint, self.destroy_service)
-        self._endpoints = []
+        for subscription in self._subscriptions:
+            self.destroy_subscription(subscription)
+        self._subscriptions = []
+        self._when_idle(self._sample_service, lambda service: None)
         self._update_continuous_timer()
 
-    def _destroy_when_idle(self, entity: Service | Timer, destroy: Any) -> None:
-        """Destroys ``entity`` once no callback of it runs, holding its (mutually exclusive) callback group so
-        that none starts meanwhile; the executor then skips work it had already scheduled for it."""
+    def _when_idle(self, entity: Service | Timer, action: Any) -> None:
+        """Runs ``action(entity)`` once no callback of ``entity`` runs (or sends its answer), holding its
+        (mutually exclusive) callback group so that none starts meanwhile."""
         group = entity.callback_group
         waiting_since = time.monotonic()
         told = False
@@ -270,7 +275,7 @@ class CompletionNode(LifecycleNode):
                                        "cannot be interrupted)")
             time.sleep(0.005)
         try:
-            destroy(entity)
+            action(entity)
         finally:
             group.ending_execution(entity)
 
@@ -278,11 +283,30 @@ class CompletionNode(LifecycleNode):
         """The continuous mode's timer exists exactly while the node is active with ``continuous`` on."""
         wanted = self._active and self._values["continuous"]
         if wanted and self._continuous_timer is None:
-            self._continuous_timer = self.create_timer(CONTINUOUS_TICK_S, self._continuous_tick,
-                                                       callback_group=MutuallyExclusiveCallbackGroup())
+            timer = self.create_timer(1.0, self._continuous_tick, callback_group=MutuallyExclusiveCallbackGroup(),
+                                      autostart=False)
+            with self._lock:
+                self._continuous_timer = timer
+                self._arm_continuous()
         elif not wanted and self._continuous_timer is not None:
-            self._destroy_when_idle(self._continuous_timer, self.destroy_timer)
-            self._continuous_timer = None
+            with self._lock:
+                timer, self._continuous_timer = self._continuous_timer, None
+            self._when_idle(timer, self.destroy_timer)
+
+    def _arm_continuous(self) -> None:
+        """Sets the continuous-mode timer to fire when the pending set may start (now, or once max_rate_hz
+        allows), or stops it when nothing is pending or a set is in progress (its end re-arms it): an idle node
+        polls nothing, and a ready timer whose callback group is busy would keep the executor spinning. Call
+        with ``_lock`` held, so that a set put meanwhile re-arms it."""
+        timer = self._continuous_timer
+        if timer is None:
+            return
+        wait = self._slot.wait_time()
+        if wait is None or self._slot.stats().in_progress:
+            timer.cancel()
+        else:
+            timer.timer_period_ns = max(int(wait * 1e9), CONTINUOUS_MIN_DELAY_NS)
+            timer.reset()
 
     def _release(self) -> None:
         for publisher in self._outputs.values():
@@ -322,6 +346,7 @@ class CompletionNode(LifecycleNode):
         with self._lock:
             self._slot.max_rate_hz = self._values["max_rate_hz"]
             self._slot.paused = not (self._active and self._values["continuous"])
+            self._arm_continuous()
         self._update_continuous_timer()
 
     # ------------------------------------------------------------------------------------------ topics
@@ -339,12 +364,16 @@ class CompletionNode(LifecycleNode):
             self._latest = synced
             if self._active and self._values["continuous"]:
                 self._slot.put(synced)
+                self._arm_continuous()
 
     def _age_s(self, synced: SyncedSet) -> float:
         return (self.get_clock().now().nanoseconds - synced.stamp_ns) * 1e-9
 
     def _continuous_tick(self) -> None:
-        if (synced := self._slot.try_take()) is not None:
+        with self._lock:
+            synced = self._slot.try_take()
+            self._arm_continuous()  # stopped unless a newer set is already waiting
+        if synced is not None:
             self._complete_topic_set(synced)
 
     def _finish(self, outcome: str) -> int:
@@ -352,6 +381,7 @@ class CompletionNode(LifecycleNode):
         with self._lock:
             self._counters[outcome] += 1
             self._slot.done()
+            self._arm_continuous()
             return self._counters[outcome]
 
     def _complete_topic_set(self, synced: SyncedSet) -> None:
@@ -396,7 +426,7 @@ class CompletionNode(LifecycleNode):
              compute_grasps: bool) -> tuple[PipelineResult, Header]:
         pipeline = self.pipeline
         if pipeline is None:
-            raise InputError("the node is not configured (no model loaded)", Status.STATUS_NOT_READY)
+            raise InputError("the node is not configured (no model loaded)", Status.STATUS_NOT_ACTIVE)
         result, header = complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"],
                                            num_samples, compute_grasps, self._stopping.is_set)
         self._up_disagreement_deg = result.up_disagreement_deg
@@ -437,6 +467,11 @@ class CompletionNode(LifecycleNode):
                                response: SampleCompletions.Response) -> SampleCompletions.Response:
         self._count("service_calls")
         t0 = time.perf_counter()
+        if not self._active:
+            state = "inactive" if self.pipeline is not None else "unconfigured"
+            return self._refuse(response, Status.STATUS_NOT_ACTIVE,
+                                f"the node is {state}: it serves completions only while active (lifecycle "
+                                f"configure, then activate)")
         try:
             depth_msg, mask_msg, info_msg = self._request_input(request)
             response.header = depth_msg.header
@@ -516,7 +551,7 @@ class CompletionNode(LifecycleNode):
 
     def destroy_node(self) -> None:
         if getattr(self, "_active", False):
-            self._close_endpoints()
+            self._stop_work()
         super().destroy_node()
 
 
@@ -546,6 +581,7 @@ def main(args: Sequence[str] | None = None) -> int:
     # A predecessor killed with -9 leaves its Fast DDS shared memory (32 MiB per participant): remove what
     # belongs to dead processes only, before this process's own participant exists.
     shm = clean_stale_shm()
+    faulthandler.register(signal.SIGUSR1)  # `kill -USR1 PID` prints every thread's stack: a hung node explains itself
     rclpy.init(args=argv)
     node: CompletionNode | None = None
     code = 0

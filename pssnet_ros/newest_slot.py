@@ -7,8 +7,9 @@ ROS-free (no rclpy) and with an injectable clock, so that its rules are tested e
 - starts are at least ``1 / max_rate_hz`` apart (start to start);
 - paused: an item is kept but not handed out.
 
-Nothing here blocks: the node's continuous-mode timer asks :meth:`NewestSlot.try_take` on each tick, so the
-work runs as an executor callback that a lifecycle transition can wait for.
+Nothing here blocks: the node's continuous-mode timer is armed for :meth:`NewestSlot.wait_time` and then
+asks :meth:`NewestSlot.try_take`, so the work runs as an executor callback that a lifecycle transition can wait
+for, and an idle node polls nothing.
 
 The counters (:class:`SlotStats`) are read atomically, so a caller can account for every item put: it was
 superseded, is pending, is in progress, or was started and finished (``started - in_progress``).
@@ -93,6 +94,12 @@ class NewestSlot(Generic[T]):
             self._offered += 1
             self._superseded += int(replaced)
             return replaced
+
+    def wait_time(self) -> float | None:
+        """Seconds until :meth:`try_take` would hand out the pending item (0 = now); None when nothing is
+        pending, or the slot is paused."""
+        with self._lock:
+            return self._wait_time()
 
     def _wait_time(self) -> float | None:
         if self._paused or not self._has_item:

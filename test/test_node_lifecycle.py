@@ -80,8 +80,7 @@ class DiagnosticsListener:
 
 def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoint):
     diagnostics = DiagnosticsListener(ros)
-    # A client from the start, so that by the time it matters it has discovered whatever server there is
-    # (the graph lists services that only have clients too, so server_is_ready is the test).
+    # A client from the start, so that by the time it matters it has discovered the server.
     service = ros.node.create_client(SampleCompletions, SAMPLE_SERVICE)
     assert ros.lifecycle_state() == "unconfigured"
     seen = diagnostics.wait_for_state("unconfigured")
@@ -91,7 +90,8 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
     mark = len(node.lines())
     assert not ros.change_state("configure")
     assert ros.lifecycle_state() == "unconfigured"
-    assert any("configure failed" in line and "no checkpoint file" in line for line in node.lines(mark))
+    wait_until(lambda: any("configure failed" in line and "no checkpoint file" in line for line in node.lines(mark)),
+               30, "the failed configure logged")
     failed = wait_until(lambda: (d := diagnostics.wait_for_state("unconfigured"))["level"]
                         == DiagnosticStatus.ERROR and d, 30, "an ERROR status")
     assert "no checkpoint file" in failed["message"]
@@ -103,7 +103,10 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
     refused = ros.set_parameters(model_path="/elsewhere.pt")[0]
     assert not refused.successful and "only change while the node is unconfigured" in refused.reason
     assert ros.set_parameters(num_samples=3)[0].successful  # ordinary parameters change in any state
-    assert not service.service_is_ready()
+    assert service.wait_for_service(timeout_sec=30)  # in every state; it serves only while active
+    inactive = ros.call(service, SampleCompletions.Request())
+    assert inactive.status == inactive.STATUS_NOT_ACTIVE and not inactive.success
+    assert inactive.message.startswith("the node is inactive: it serves completions only while active"), inactive
 
     assert ros.change_state("activate")
     assert ros.lifecycle_state() == "active"
@@ -137,9 +140,11 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
 
     assert ros.change_state("deactivate")
     assert ros.lifecycle_state() == "inactive"
-    wait_until(lambda: not service.service_is_ready(), 30, "the sample service gone after deactivate")
+    assert ros.call(service, make_request(scene, stamped_header(7))).status == inactive.STATUS_NOT_ACTIVE
     assert ros.change_state("cleanup")
     assert ros.lifecycle_state() == "unconfigured"
+    unconfigured = ros.call(service, SampleCompletions.Request())
+    assert unconfigured.status == inactive.STATUS_NOT_ACTIVE and "the node is unconfigured" in unconfigured.message
     assert ros.set_parameters(model_path=str(checkpoint))[0].successful  # unconfigured again: allowed
     # A transition the state machine does not have from here is refused, the state unchanged, the node alive
     # (plain rclpy lets this request end the node's spin).

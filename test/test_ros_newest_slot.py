@@ -20,15 +20,15 @@ class FakeClock:
 def test_the_first_item_starts_at_once_and_starts_are_rate_limited_exactly():
     clock = FakeClock()  # times below are binary fractions: the arithmetic is exact
     slot: NewestSlot[str] = NewestSlot(4.0, clock=clock)
-    assert slot.try_take() is None  # nothing pending
+    assert slot.wait_time() is None and slot.try_take() is None  # nothing pending
     slot.put("a")
-    assert slot.try_take() == "a"
+    assert slot.wait_time() == 0.0 and slot.try_take() == "a"
     slot.done()
     clock.t += 0.0625
     slot.put("b")
-    assert slot.try_take() is None
+    assert slot.wait_time() == 0.1875 and slot.try_take() is None
     clock.t += 0.1875 - 2**-20
-    assert slot.try_take() is None  # a microsecond early
+    assert slot.wait_time() == 2**-20 and slot.try_take() is None  # a microsecond early
     clock.t += 2**-20
     assert slot.try_take() == "b"
     slot.done()
