@@ -63,7 +63,7 @@ def main() -> None:
     parser.add_argument("--reach-step", type=float, default=15.0, help="azimuth step of the reach measure (deg)")
     args = parser.parse_args()
     model = load_checkpoint(args.checkpoint)[0].eval()
-    if getattr(model, "box_dim", 0) == 0:
+    if not model.has_box_latent:
         raise SystemExit("the checkpoint has no box part (PSSNet only)")
     views = [v for v in load_test_set(args.data)[0] if v.meta.get("handle_visible") is False]
     rng = np.random.default_rng(args.seed)

@@ -65,7 +65,7 @@ def posterior_stats(model: CompletionModel, reader: DatasetReader, label: str, c
     total = len(reader)
     count = total if max_views is None else min(total, max_views)
     indices = np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))
-    box_dim = int(getattr(model, "box_dim", 0))
+    box_dim = model.box_dim
     bces, ious, box_sigmas, rest_sigmas, index_order = [], [], [], [], []
     model.eval()
     with torch.inference_mode():
