@@ -80,6 +80,7 @@ from pssnet_core.evaluation.observation_model import (
     ObservationModelConfig,
 )
 from pssnet_core.evaluation.plausible import EvalView
+from pssnet_core.spread import evenly_spaced
 
 #: the evaluation's deltas: scaled to real-size objects (1 cm) first, then the paper's 4 cm (DESIGN.md)
 DEFAULT_DELTAS: tuple[float, ...] = (0.01, 0.04)
@@ -592,11 +593,9 @@ def _sample(completer: Any, view: EvalView, samples: int, seed: int, temperature
 
 
 def _spaced(items: list[Any], count: int | None) -> list[Any]:
-    if count is None or count >= len(items):
-        return items
-    if count < 1:
+    if count is not None and count < 1:
         raise AmbiguityError(f"max_views must be >= 1, got {count}")
-    return [items[int(k)] for k in np.unique(np.linspace(0, len(items) - 1, count).round().astype(int))]
+    return [items[k] for k in evenly_spaced(len(items), count)]
 
 
 def _nanmean(values: Sequence[float]) -> float:

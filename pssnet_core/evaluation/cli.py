@@ -30,11 +30,11 @@ from pssnet_core.evaluation.testsets import (
     PAPER_TEST_SETS,
     TEST_SETS,
     build_command,
-    evenly_spaced_views,
     find_test_set,
     load_test_set,
 )
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
+from pssnet_core.spread import evenly_spaced
 
 PAPER_DELTA = 0.04
 SCALED_DELTA = 0.01
@@ -254,7 +254,7 @@ def _references(count: int, max_observations: int | None) -> list[int] | None:
         return None
     if max_observations < 1:
         raise EvaluationCliError(f"--max-observations must be >= 1, got {max_observations}")
-    return evenly_spaced_views(count, max_observations)
+    return evenly_spaced(count, max_observations)
 
 
 def _dense_mug_views(views: list[Any], count: int, step: int) -> list[int]:

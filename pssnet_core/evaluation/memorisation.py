@@ -48,6 +48,7 @@ import numpy as np
 from scipy import ndimage
 
 from pssnet_core.evaluation.metrics import chamfer_matrix, distance_fields
+from pssnet_core.spread import evenly_spaced
 
 
 class MemorisationError(ValueError):
@@ -329,13 +330,9 @@ def dataset_roots(paths: Sequence[str | Path]) -> list[Path]:
 
 
 def _spaced(count: int, limit: int | None) -> list[int]:
-    from pssnet_core.evaluation.testsets import evenly_spaced_views
-
-    if limit is None or limit >= count:
-        return list(range(count))
-    if limit < 1:
+    if limit is not None and limit < 1:
         raise MemorisationError(f"max_views must be >= 1, got {limit}")
-    return evenly_spaced_views(count, limit)
+    return evenly_spaced(count, limit)
 
 
 def run_memorisation(run: MemorisationRun, completers: Mapping[str, Any]) -> dict[str, Path]:
@@ -416,7 +413,7 @@ def run_memorisation(run: MemorisationRun, completers: Mapping[str, Any]) -> dic
                                   for samples, truth in zip(completions[name], truths, strict=True)])
         if run.verify > 0:
             t0 = time.perf_counter()
-            pick = np.unique(np.linspace(0, len(queries) - 1, min(run.verify, len(queries))).round().astype(int))
+            pick = np.asarray(evenly_spaced(len(queries), run.verify))
             d_brute, _ = brute_force_nearest(queries[pick], index)
             t_verify += time.perf_counter() - t0
             verify[name] = {"completions": int(len(pick)),

@@ -12,6 +12,7 @@ import numpy as np
 
 from pssnet_core.evaluation.evaluate import KeptExample
 from pssnet_core.evaluation.metrics import METRIC_NAMES
+from pssnet_core.spread import evenly_spaced
 
 
 def _hidden(row: dict[str, Any]) -> bool:
@@ -217,7 +218,7 @@ def plot_samples_vs_plausible(path: str | Path, examples: Sequence[KeptExample],
     fig = plt.figure(figsize=(2.0 * cols, 2.1 * 2 * len(chosen)))
     for k, ex in enumerate(chosen):
         # Spread the samples shown over the set: the most diverse-looking choice without extra computation.
-        picks = np.linspace(0, len(ex.samples) - 1, min(max_samples, len(ex.samples))).round().astype(int)
+        picks = evenly_spaced(len(ex.samples), max_samples)
         ax = fig.add_subplot(2 * len(chosen), cols, 2 * k * cols + 1, projection="3d")
         draw_voxels(ax, ex.plausible[0], f"{ex.set_name} #{ex.index}\nground truth", "tab:green")
         ax = fig.add_subplot(2 * len(chosen), cols, (2 * k + 1) * cols + 1, projection="3d")
