@@ -14,8 +14,8 @@ from pssnet_core.evaluation.compare import (
     paired_differences,
     read_per_observation,
 )
+from pssnet_core.evaluation.experiment import write_csv
 from pssnet_core.evaluation.metrics import METRIC_NAMES
-from pssnet_core.evaluation.report import write_csv
 from pssnet_core.spread import evenly_spaced
 
 

@@ -17,7 +17,9 @@ from pssnet_core.data.build import build
 from pssnet_core.data.datasets import DatasetSpec, DatasetSpecError, dataset_specs
 from pssnet_core.data.store import DatasetReader
 from pssnet_core.evaluation.ambiguity import AmbiguityError, AmbiguityRun, run_ambiguity
-from pssnet_core.evaluation.cli import run_evaluation
+from pssnet_core.evaluation.evaluate import EvaluateConfig, TestSetsConfig, run_evaluation
+from pssnet_core.evaluation.experiment import write_report
+from pssnet_core.evaluation.report import evaluation_report
 from pssnet_core.evaluation.testsets import OOF_TEST_SETS, find_test_set
 from pssnet_core.shapes import BOX_FAMILIES, MUG_FAMILIES, ShapeId
 from pssnet_core.shapes.registry_objects import registry_identities
@@ -100,11 +102,10 @@ def test_ambiguity_runs_on_the_oof_sets(oof_sets, tmp_path):
 
 
 def test_the_paper_evaluation_runs_on_the_oof_sets(oof_sets, tmp_path):
-    args = argparse.Namespace(data=str(oof_sets), sets=",".join(OOF_TEST_SETS), max_observations=None, workers=1,
-                              cache_dir=str(tmp_path / "cache"), recompute=False, outlier_fraction=0.0,
-                              outlier_count=0, record_fraction=0.01, no_progress=True, samples=2, delta=0.04,
-                              scaled_delta=0.01, out=str(tmp_path / "out"), seed=0, plot_mugs=1)
-    files = run_evaluation(args, {"truth": TruthCompleter(oof_sets)})
+    config = EvaluateConfig(TestSetsConfig(data=str(oof_sets), sets=OOF_TEST_SETS, cache_dir=str(tmp_path / "cache"),
+                                           progress=False),
+                            out=str(tmp_path / "out"), samples=2, delta=0.04, scaled_delta=0.01, plot_mugs=1)
+    files = write_report(evaluation_report(run_evaluation(config, {"truth": TruthCompleter(oof_sets)})), config.out)
     rows = list(csv.DictReader(open(files["per_observation"])))
     assert {r["set"] for r in rows} == set(OOF_TEST_SETS) and len(rows) == (8 + 8 + 8) * 2
     assert max(float(r["best_accuracy_mm"]) for r in rows) == pytest.approx(0.0, abs=1e-9)

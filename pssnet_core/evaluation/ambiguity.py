@@ -770,7 +770,7 @@ def run_ambiguity(run: AmbiguityRun, completers: Mapping[str, Any]) -> dict[str,
         "plausible": {"handle_arcs": {str(k): a.to_json() for k, a in arcs.items()},
                       "slit_ranges": {str(k): r.to_json() for k, r in ranges.items()}},
     }), indent=1, allow_nan=False))
-    from pssnet_core.evaluation.report import write_csv
+    from pssnet_core.evaluation.experiment import write_csv
 
     files["csv"] = write_csv(out / "ambiguity_per_view.csv",
                              [{k: v for k, v in r.items() if not isinstance(v, list)} for r in rows])
@@ -966,7 +966,7 @@ def plot_handle_arcs(path: str | Path, arcs: Mapping[int, HandleArc], rows: Sequ
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pssnet_core.evaluation.report import save_figure
+    from pssnet_core.evaluation.figures import save_figure
 
     chosen = sorted(arcs.values(), key=lambda a: (-len(a.arc(delta)), a.index))[:max(1, count)]
     fig, axes = plt.subplots(1, len(chosen), figsize=(4.2 * len(chosen), 4.6), squeeze=False,
@@ -1006,7 +1006,7 @@ def plot_slit_extents(path: str | Path, ranges: Mapping[int, SlitRange], rows: S
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pssnet_core.evaluation.report import save_figure
+    from pssnet_core.evaluation.figures import save_figure
 
     chosen = _spaced(sorted(ranges.values(), key=lambda r: r.index), max(1, count))
     fig, ax = plt.subplots(figsize=(max(6.0, 0.9 * len(chosen) * (1 + 0.15 * len(runs))), 4.2))
@@ -1049,7 +1049,7 @@ def plot_summary(path: str | Path, summary: Sequence[dict[str, Any]], runs: Sequ
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pssnet_core.evaluation.report import save_figure
+    from pssnet_core.evaluation.figures import save_figure
 
     keys = [("arc_coverage", "arc coverage"), ("arc_precision", "arc precision"),
             ("arc_spread_ratio", "arc spread ratio"), ("slit_coverage", "slit coverage"),

@@ -347,7 +347,7 @@ def run_memorisation(run: MemorisationRun, completers: Mapping[str, Any]) -> dic
     from tqdm import tqdm
 
     from pssnet_core.data.store import DatasetReader
-    from pssnet_core.evaluation.report import write_csv
+    from pssnet_core.evaluation.experiment import write_csv
     from pssnet_core.evaluation.testsets import find_test_set, load_test_set
 
     if run.samples < 1:
@@ -511,7 +511,7 @@ def plot_memorisation(path: str | Path, rows: Sequence[dict[str, Any]], methods:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pssnet_core.evaluation.report import save_figure
+    from pssnet_core.evaluation.figures import save_figure
 
     fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 4.0), squeeze=False)
     for ax, method in zip(axes[0], methods, strict=True):
@@ -540,7 +540,7 @@ def plot_examples(path: str | Path, examples: Mapping[str, list[tuple[float, np.
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pssnet_core.evaluation.report import draw_voxels, save_figure
+    from pssnet_core.evaluation.figures import draw_voxels, save_figure
 
     items = [(m, e) for m, es in examples.items() for e in es]
     fig = plt.figure(figsize=(6.0, 2.0 * max(1, len(items))))
