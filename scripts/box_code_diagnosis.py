@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from pssnet_core.data.scenes import box_in_grid
-from pssnet_core.evaluation.ambiguity import mug_parts, plausible_handle_arc
+from pssnet_core.evaluation.ambiguity_sets import mug_parts, plausible_handle_arc
 from pssnet_core.evaluation.handles import HandleGeometry, circular_difference_deg, handle_azimuths, turned
 from pssnet_core.evaluation.testsets import load_test_set
 from pssnet_core.models.checkpoint import load_checkpoint

@@ -30,6 +30,7 @@ from pssnet_core.evaluation.testsets import PAPER_TEST_SETS, TEST_SETS
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 
 if TYPE_CHECKING:  # the experiments' own modules load when their command runs
+    from pssnet_core.evaluation.ambiguity import AmbiguityConfig
     from pssnet_core.evaluation.handles import HandlesConfig
 
 
@@ -390,31 +391,35 @@ def _handles_command(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------ ambiguity
 
 
-def ambiguity_run(args: argparse.Namespace) -> Any:
-    """The :class:`~pssnet_core.evaluation.ambiguity.AmbiguityRun` of ``pssnet ambiguity``'s arguments."""
-    from pssnet_core.evaluation.ambiguity import AmbiguityConfig, AmbiguityRun
+def ambiguity_config(args: argparse.Namespace) -> AmbiguityConfig:
+    """The :class:`~pssnet_core.evaluation.ambiguity.AmbiguityConfig` of ``pssnet ambiguity``'s arguments."""
+    from pssnet_core.evaluation.ambiguity import AmbiguityConfig
+    from pssnet_core.evaluation.ambiguity_sets import AmbiguityMeasure
 
-    config = AmbiguityConfig(
+    measure = AmbiguityMeasure(
         deltas=tuple(args.deltas),
         observation=ObservationModelConfig(outlier_fraction=args.outlier_fraction, outlier_count=args.outlier_count),
         azimuth_step_deg=args.azimuth_step, arc_tolerance_deg=args.arc_tolerance, arc_margin_deg=args.arc_margin,
         extent_step_voxels=args.extent_step, extent_tolerance_voxels=args.extent_tolerance,
         extent_margin_voxels=args.extent_margin, rerender=not args.no_rerender)
-    return AmbiguityRun(data=args.data, out=args.out, sets=tuple(_set_names(args.sets)), samples=args.samples,
-                        box_temperatures=tuple(args.box_temperatures), max_views=args.max_views, seed=args.seed,
-                        progress=not args.no_progress, figure_views=args.figure_views, cache_dir=args.cache_dir,
-                        config=config)
+    return AmbiguityConfig(data=args.data, out=args.out, sets=_set_names(args.sets), samples=args.samples,
+                           box_temperatures=tuple(args.box_temperatures), max_views=args.max_views, seed=args.seed,
+                           progress=not args.no_progress, figure_views=args.figure_views, cache_dir=args.cache_dir,
+                           measure=measure)
 
 
 def _ambiguity_command(args: argparse.Namespace) -> int:
     from pssnet_core.evaluation.ambiguity import run_ambiguity
+    from pssnet_core.evaluation.ambiguity_report import ambiguity_report
 
-    run = ambiguity_run(args)  # parameters checked before the models load
-    files = run_ambiguity(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads,
-                                                    args.samplers, args.check_delta))
-    print(files["markdown"].read_text())
-    print("wrote " + ", ".join(str(p) for p in files.values()))
+    config = ambiguity_config(args)  # parameters checked before the models load
+    completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
+                                 args.check_delta)
+    _write(ambiguity_report(run_ambiguity(config, completers)), config.out)
     return 0
+
+
+# --------------------------------------------------------------------------------------- memorisation
 
 
 def memorisation_run(args: argparse.Namespace) -> Any:
