@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from pssnet_core.evaluation.evaluate import (
     PAPER_DELTA,
@@ -32,6 +32,7 @@ from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 if TYPE_CHECKING:  # the experiments' own modules load when their command runs
     from pssnet_core.evaluation.ambiguity import AmbiguityConfig
     from pssnet_core.evaluation.handles import HandlesConfig
+    from pssnet_core.evaluation.memorisation import MemorisationConfig
 
 
 class EvaluationCliError(ValueError):
@@ -422,24 +423,25 @@ def _ambiguity_command(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------- memorisation
 
 
-def memorisation_run(args: argparse.Namespace) -> Any:
-    """The :class:`~pssnet_core.evaluation.memorisation.MemorisationRun` of ``pssnet memorisation``'s arguments."""
-    from pssnet_core.evaluation.memorisation import MemorisationConfig, MemorisationRun
+def memorisation_config(args: argparse.Namespace) -> MemorisationConfig:
+    """The :class:`~pssnet_core.evaluation.memorisation.MemorisationConfig` of ``pssnet memorisation``'s
+    arguments."""
+    from pssnet_core.evaluation.memorisation import MemorisationConfig
+    from pssnet_core.evaluation.memorisation_search import SearchConfig
 
-    return MemorisationRun(train_data=[p.strip() for p in args.train_data.split(",") if p.strip()], data=args.data,
-                           out=args.out, sets=tuple(_set_names(args.sets)), samples=args.samples,
-                           max_views=args.max_views, seed=args.seed, verify=args.verify,
-                           progress=not args.no_progress,
-                           config=MemorisationConfig(pool=args.pool, top_k=args.top_k))
+    return MemorisationConfig(train_data=list(_names(args.train_data)), data=args.data, out=args.out,
+                              sets=_set_names(args.sets), samples=args.samples, max_views=args.max_views,
+                              seed=args.seed, verify=args.verify, progress=not args.no_progress,
+                              search=SearchConfig(pool=args.pool, top_k=args.top_k))
 
 
 def _memorisation_command(args: argparse.Namespace) -> int:
     from pssnet_core.evaluation.memorisation import run_memorisation
+    from pssnet_core.evaluation.memorisation_report import memorisation_report
 
-    run = memorisation_run(args)
-    files = run_memorisation(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads))
-    print(files["markdown"].read_text())
-    print("wrote " + ", ".join(str(p) for p in files.values()))
+    config = memorisation_config(args)
+    completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads)
+    _write(memorisation_report(run_memorisation(config, completers)), config.out)
     return 0
 
 
