@@ -38,6 +38,7 @@ from pssnet_core.data.store import DatasetReader  # noqa: E402
 from pssnet_core.evaluation.plausible import PlausibleConfig, ShapeMeshes, compute_plausible_sets  # noqa: E402
 from pssnet_core.evaluation.testsets import load_test_set  # noqa: E402
 from pssnet_core.ray_tasks import RayConfig, TaskRunner, descendants, process_stats  # noqa: E402
+from pssnet_core.spread import evenly_spaced  # noqa: E402
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -123,7 +124,7 @@ def measure(label: str, config: RayConfig, args: argparse.Namespace) -> Measured
         with build.timed():
             built = build_dataset(spec, Path(root) / "mugs", runner=runner, progress=False)
         views, _ = load_test_set(built.path)
-        refs = np.linspace(0, len(views) - 1, min(args.references, len(views))).round().astype(int).tolist()
+        refs = evenly_spaced(len(views), args.references)
         with plausible.timed():
             sets = compute_plausible_sets(views, ShapeMeshes(), PlausibleConfig(deltas=(0.04, 0.01)), refs,
                                           runner=runner, progress=False)

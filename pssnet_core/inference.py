@@ -105,7 +105,7 @@ class Completer:
         # channels_last_3d: the fast conv layout (oneDNN, cuDNN) and a free first permute of the block layers.
         self.model = model.to(self.device).eval().to_fast_layout()
         try:
-            self.box_temperature = check_box_temperature(box_temperature, getattr(model, "box_dim", 0) > 0)
+            self.box_temperature = check_box_temperature(box_temperature, model.has_box_latent)
         except ModelInputError as error:
             raise ValueError(str(error)) from error
         self.ctx = StepContext(self.device, autocast_dtype)
@@ -146,6 +146,11 @@ class Completer:
     @property
     def model_name(self) -> str:
         return self.config.model
+
+    @property
+    def has_box_latent(self) -> bool:
+        """Whether the model has a box part that a box temperature widens (PSSNet)."""
+        return self.model.has_box_latent
 
     @property
     def precision(self) -> str:
@@ -207,7 +212,7 @@ class Completer:
         x = self.network_input(observation)
         temperature = self.box_temperature if box_temperature is None else box_temperature
         try:
-            temperature = check_box_temperature(temperature, getattr(self.model, "box_dim", 0) > 0)
+            temperature = check_box_temperature(temperature, self.has_box_latent)
         except ModelInputError as error:
             raise CompletionInputError(str(error)) from error
         generator = torch.Generator().manual_seed(int(seed))

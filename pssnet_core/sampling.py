@@ -213,6 +213,10 @@ class CheckedSampler:
         return self.completer.model
 
     @property
+    def has_box_latent(self) -> bool:
+        return self.completer.has_box_latent
+
+    @property
     def grid_size(self) -> int:
         return int(self.completer.grid_size)
 
@@ -236,7 +240,7 @@ class CheckedSampler:
                 box_temperature: float) -> torch.Tensor:
         """(P, N^3) float32 occupancy probabilities of the proposals of each source, in ``SOURCES`` order."""
         model = self.completer.model
-        box = int(getattr(model, "box_dim", 0) or 0)
+        box = model.box_dim
         with torch.inference_mode(), self.completer.ctx.autocast():
             mu, logvar = model.encode(model.check_input(x))
             latents = []
@@ -263,10 +267,8 @@ class CheckedSampler:
             raise CompletionInputError(f"num_samples must be a positive int, got {num_samples!r}")
         known_occupied, known_free, pose = _grid_parts(observation)
         x = self.completer.network_input(observation)
-        model = self.completer.model
         temperature = self.completer.box_temperature if box_temperature is None else box_temperature
-        has_box = int(getattr(model, "box_dim", 0) or 0) > 0
-        counts = self.sampler_config.proposal_counts(int(num_samples), has_box)
+        counts = self.sampler_config.proposal_counts(int(num_samples), self.has_box_latent)
         generator = torch.Generator().manual_seed(int(seed))
         t0 = time.perf_counter()
         probs = self.propose(x, counts, generator, float(temperature)).numpy()

@@ -1,13 +1,31 @@
-"""Occupancy grids that spread out: Jaccard distances on packed bits and greedy farthest-point selection.
+"""Picking items that spread out: evenly spaced indices, and occupancy grids by Jaccard distance on packed bits
+with greedy farthest-point selection.
 
-One piece for the two places that pick a few grids differing most: the checked sampler (which samples to return,
-and the share of the accepted proposals each stands for) and the figures (which samples to draw). numpy only, so
-that figure code does not pull in torch.
+:func:`evenly_spaced` is the one picker of evenly spaced subsets (views a command scores, completions re-checked,
+samples drawn). The farthest-point selection serves the two places that pick a few grids differing most: the
+checked sampler (which samples to return, and the share of the accepted proposals each stands for) and the figures
+(which samples to draw). numpy only, so that figure code does not pull in torch.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+
+def evenly_spaced(count: int, limit: int | None) -> list[int]:
+    """Indices of ``limit`` items spread evenly over ``count``, ascending (all when ``limit`` is None or ``>= count``).
+
+    The same ``count`` and ``limit`` always give the same indices, so that the subsets of different commands
+    (``--max-observations``, ``--max-views``) coincide.
+
+    Raises:
+        ValueError: ``limit`` < 1 (and smaller than ``count``).
+    """
+    if limit is None or limit >= count:
+        return list(range(count))
+    if limit < 1:
+        raise ValueError(f"an evenly spaced subset needs at least 1 item, got {limit}")
+    return sorted(set(np.linspace(0, count - 1, limit).round().astype(int).tolist()))
 
 
 class BitRows:

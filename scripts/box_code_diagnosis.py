@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from pssnet_core.data.scenes import box_in_grid
-from pssnet_core.evaluation.ambiguity import mug_parts, plausible_handle_arc
+from pssnet_core.evaluation.ambiguity_sets import mug_parts, plausible_handle_arc
 from pssnet_core.evaluation.handles import HandleGeometry, circular_difference_deg, handle_azimuths, turned
 from pssnet_core.evaluation.testsets import load_test_set
 from pssnet_core.models.checkpoint import load_checkpoint
@@ -63,7 +63,7 @@ def main() -> None:
     parser.add_argument("--reach-step", type=float, default=15.0, help="azimuth step of the reach measure (deg)")
     args = parser.parse_args()
     model = load_checkpoint(args.checkpoint)[0].eval()
-    if getattr(model, "box_dim", 0) == 0:
+    if not model.has_box_latent:
         raise SystemExit("the checkpoint has no box part (PSSNet only)")
     views = [v for v in load_test_set(args.data)[0] if v.meta.get("handle_visible") is False]
     rng = np.random.default_rng(args.seed)

@@ -17,20 +17,19 @@ import pytest
 from pssnet_core.data.build import build
 from pssnet_core.data.scenes import ObjectScene, ground_truth_occupancy
 from pssnet_core.data.store import DatasetReader
-from pssnet_core.evaluation.ambiguity import (
-    AmbiguityConfig,
+from pssnet_core.evaluation.ambiguity import AmbiguityConfig, arc_scores, extent_scores, run_ambiguity
+from pssnet_core.evaluation.ambiguity_report import ambiguity_report
+from pssnet_core.evaluation.ambiguity_sets import (
     AmbiguityError,
-    AmbiguityRun,
-    arc_scores,
-    extent_scores,
+    AmbiguityMeasure,
     grid_x_extent,
     hidden_axis,
     mug_parts,
     plausible_handle_arc,
     plausible_slit_range,
-    run_ambiguity,
     stretched,
 )
+from pssnet_core.evaluation.experiment import write_report
 from pssnet_core.evaluation.handles import (
     HandleGeometry,
     circular_difference_deg,
@@ -118,7 +117,7 @@ def hidden_view(tiny_sets):
 
 def test_plausible_arc_holds_the_truth_and_not_a_handle_facing_the_camera(hidden_view):
     parts = mug_parts(make_shape("mug", ShapeId.parse(ROUND_MUG).seed))
-    arc = plausible_handle_arc(hidden_view, hidden_view.depth_view, parts, AmbiguityConfig())
+    arc = plausible_handle_arc(hidden_view, hidden_view.depth_view, parts, AmbiguityMeasure())
     for delta in (0.01, 0.04):
         assert arc.truth_accepted(delta)
     allowed = arc.arc(0.01)
@@ -160,6 +159,7 @@ class TurningCompleter:
     """Fake completer: the view's true mug turned by given angles (or its stored truth for other objects)."""
 
     grid_size = 32
+    has_box_latent = False
 
     def __init__(self, root, turns_for):
         self.views = {}
@@ -192,7 +192,7 @@ class TurningCompleter:
 class BoxCompleter(TurningCompleter):
     """Accepts a box temperature (as PSSNet does) and records it."""
 
-    box_dim = 24
+    has_box_latent = True
 
     def complete(self, observation, num_samples=20, seed=0, box_temperature=1.0):
         self.calls.append(box_temperature)
@@ -211,9 +211,9 @@ def test_command_scores_spread_and_agreeing_samples(tiny_sets, hidden_view, tmp_
 
     completers = {"agree": TurningCompleter(tiny_sets, lambda s: None if s["family"] != "mug" else [0.0]),
                   "spread": BoxCompleter(tiny_sets, spread)}
-    run = AmbiguityRun(data=str(tiny_sets), out=str(tmp_path / "out"), samples=len(picks),
-                       box_temperatures=(1.0, 2.0), max_views=2, progress=False)
-    files = run_ambiguity(run, completers)
+    config = AmbiguityConfig(data=str(tiny_sets), out=str(tmp_path / "out"), samples=len(picks),
+                             box_temperatures=(1.0, 2.0), max_views=2, progress=False)
+    files = write_report(ambiguity_report(run_ambiguity(config, completers)), config.out)
     result = json.loads(files["json"].read_text())
     summary = {(e["method"], e["box_temperature"], e["delta_m"]): e for e in result["summary"]}
     assert set(summary) == {("agree", 1.0, 0.01), ("agree", 1.0, 0.04), ("spread", 1.0, 0.01),
@@ -239,8 +239,7 @@ def test_command_scores_spread_and_agreeing_samples(tiny_sets, hidden_view, tmp_
     for key in ("handle_figure", "slit_figure", "summary_figure"):
         assert files[key].stat().st_size > 0
     # The plausible sets are cached: a second run with other models computes none.
-    again = run_ambiguity(run, {"agree": completers["agree"]})
-    costs = json.loads(again["json"].read_text())["costs"]
+    costs = run_ambiguity(config, {"agree": completers["agree"]}).costs
     assert costs["handle_arcs"]["computed_now"] == 0 and costs["slit_ranges"]["computed_now"] == 0
     assert costs["handle_arcs"]["cached"] == costs["handle_arcs"]["views"] > 0
 
@@ -255,10 +254,10 @@ def test_sampled_handle_azimuths_are_those_of_the_turned_mug(hidden_view):
 
 def test_config_is_checked():
     with pytest.raises(AmbiguityError):
-        AmbiguityConfig(azimuth_step_deg=7.0)  # does not divide 360
+        AmbiguityMeasure(azimuth_step_deg=7.0)  # does not divide 360
     with pytest.raises(AmbiguityError):
-        AmbiguityConfig(deltas=(0.01, 0.01))
-    assert len(AmbiguityConfig().azimuths()) == 72 and 0.0 in AmbiguityConfig().azimuths()
+        AmbiguityMeasure(deltas=(0.01, 0.01))
+    assert len(AmbiguityMeasure().azimuths()) == 72 and 0.0 in AmbiguityMeasure().azimuths()
 
 
 def test_cli_runs_a_real_checkpoint_at_each_box_temperature(tiny_sets, tmp_path, one_torch_thread):

@@ -12,7 +12,10 @@ import pytest
 from pssnet_core.cli import main
 from pssnet_core.data.build import build
 from pssnet_core.data.store import DatasetReader
-from pssnet_core.evaluation.cli import resolve_checkpoints, run_evaluation
+from pssnet_core.evaluation.cli import resolve_checkpoints
+from pssnet_core.evaluation.evaluate import EvaluateConfig, TestSetsConfig, run_evaluation
+from pssnet_core.evaluation.experiment import write_report
+from pssnet_core.evaluation.report import evaluation_report
 from pssnet_core.evaluation.testsets import find_test_set, load_test_set
 
 
@@ -64,12 +67,11 @@ def test_loader_reads_the_data_module_layout(tiny_data):
 
 
 def test_evaluate_with_oracle_completer(tiny_data, tmp_path):
-    args = argparse.Namespace(data=str(tiny_data), sets="mugs,ycb_narrow,ycb_wide", max_observations=None,
-                              workers=1, cache_dir=str(tmp_path / "cache"), recompute=False, outlier_fraction=0.0,
-                              outlier_count=0, record_fraction=0.01, no_progress=True, samples=3, delta=0.04,
-                              scaled_delta=0.01, out=str(tmp_path / "out"), seed=0, plot_mugs=1)
+    config = EvaluateConfig(TestSetsConfig(data=str(tiny_data), sets=("mugs", "ycb_narrow", "ycb_wide"),
+                                           cache_dir=str(tmp_path / "cache"), progress=False),
+                            out=str(tmp_path / "out"), samples=3, delta=0.04, scaled_delta=0.01, plot_mugs=1)
     roots = [find_test_set(tiny_data, n) for n in ("mugs", "ycb_narrow", "ycb_wide")]
-    files = run_evaluation(args, {"oracle": Oracle(roots)})
+    files = write_report(evaluation_report(run_evaluation(config, {"oracle": Oracle(roots)})), config.out)
     rows = list(csv.DictReader(open(files["per_observation"])))
     assert len(rows) == (6 + 3 + 3) * 2
     # The stored ground truth and the evaluation's rebuilt one (same definition) agree: best accuracy 0.
@@ -127,6 +129,7 @@ def test_bad_inputs(tiny_data, tiny_checkpoint, tmp_path, capsys):
 
 def test_evaluate_applies_each_models_box_temperature(tiny_data, tmp_path, monkeypatch):
     from pssnet_core.evaluation import cli as eval_cli
+    from pssnet_core.evaluation.evaluate import EvaluationResult
     from pssnet_core.models.checkpoint import save_checkpoint
     from pssnet_core.models.registry import build_model, default_config
 
@@ -134,10 +137,10 @@ def test_evaluate_applies_each_models_box_temperature(tiny_data, tmp_path, monke
                                                                         flow_hidden=16, flow_couplings=2)))
     seen = {}
 
-    def record(args, completers):  # stands in for the evaluation: what temperature does each completer carry?
+    def record(config, completers):  # stands in for the evaluation: what temperature does each completer carry?
         seen.update({m: c.box_temperature for m, c in completers.items()})
-        (Path(args.out) / "results.md").write_text("")
-        return {}
+        return EvaluationResult(config=config, methods=list(completers), test_sets={}, rows=[], examples=[],
+                                timings={})
 
     monkeypatch.setattr(eval_cli, "run_evaluation", record)
     assert main(["evaluate", "--models", "plain,warm", "--checkpoints", f"{ckpt},{ckpt}", "--data", str(tiny_data),
@@ -146,14 +149,14 @@ def test_evaluate_applies_each_models_box_temperature(tiny_data, tmp_path, monke
 
 
 def test_dense_mug_views_pick_a_full_turn_of_the_first_handled_mugs():
-    from pssnet_core.evaluation.cli import EvaluationCliError, _dense_mug_views
+    from pssnet_core.evaluation.evaluate import EvaluationError, dense_mug_views
 
     views = [argparse.Namespace(identity=f"mug-{m}", meta={"has_handle": m != 0}) for m in range(3) for _ in range(6)]
-    assert _dense_mug_views(views, 1, 2) == [6, 8, 10]  # mug-0 has no handle: mug-1's views 0, 2, 4
-    assert _dense_mug_views(views, 5, 3) == [6, 9, 12, 15]
-    assert _dense_mug_views(views, 0, 2) == []
-    with pytest.raises(EvaluationCliError, match="dense-step"):
-        _dense_mug_views(views, 1, 0)
+    assert dense_mug_views(views, 1, 2) == [6, 8, 10]  # mug-0 has no handle: mug-1's views 0, 2, 4
+    assert dense_mug_views(views, 5, 3) == [6, 9, 12, 15]
+    assert dense_mug_views(views, 0, 2) == []
+    with pytest.raises(EvaluationError, match="dense_step"):
+        dense_mug_views(views, 1, 0)
 
 
 def test_evaluate_scores_each_model_with_both_samplers(tiny_data, tiny_checkpoint, tmp_path, capsys):

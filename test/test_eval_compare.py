@@ -14,9 +14,9 @@ from pssnet_core.evaluation.compare import (
     paired_differences,
     read_per_observation,
 )
+from pssnet_core.evaluation.experiment import write_csv
 from pssnet_core.evaluation.metrics import METRIC_NAMES
-from pssnet_core.evaluation.report import write_csv
-from pssnet_core.evaluation.testsets import evenly_spaced_views
+from pssnet_core.spread import evenly_spaced
 
 
 def _rows(method: str, values: np.ndarray, set_name: str = "mugs", delta: float = 0.04,
@@ -61,12 +61,12 @@ def test_rows_pair_by_set_index_and_delta_and_subsets_follow_the_paper():
 
 
 def test_references_pick_the_observations_evaluate_would_score():
-    assert evenly_spaced_views(864, 48) == sorted(set(np.linspace(0, 863, 48).round().astype(int).tolist()))
-    assert evenly_spaced_views(5, 10) == list(range(5))
+    assert evenly_spaced(864, 48) == sorted(set(np.linspace(0, 863, 48).round().astype(int).tolist()))
+    assert evenly_spaced(5, 10) == list(range(5))
     values = np.arange(864, dtype=float)
     rows = _rows("vae", values) + _rows("pssnet", values + (values % 2))  # odd views differ by 1
     [d] = paired_differences(rows, ["pssnet"], "vae", CompareConfig(resamples=200, references=48))
-    picked = evenly_spaced_views(864, 48)
+    picked = evenly_spaced(864, 48)
     assert d.count == 48
     assert d.difference == pytest.approx(np.mean([i % 2 for i in picked]))
 

@@ -11,13 +11,16 @@ import pytest
 
 from pssnet_core.data.build import build
 from pssnet_core.data.scenes import ground_truth_occupancy
-from pssnet_core.evaluation.cli import run_handles
+from pssnet_core.evaluation.experiment import write_report
 from pssnet_core.evaluation.handles import (
     HandleGeometry,
     HandleMeasureError,
+    HandlesConfig,
     circular_spread_deg,
     handle_azimuths,
+    run_handles,
 )
+from pssnet_core.evaluation.handles_report import handles_report
 from pssnet_core.geometry import GridPose
 from pssnet_core.shapes import make_shape
 
@@ -103,10 +106,10 @@ def test_handles_command_separates_agreeing_from_spread_out_samples(tmp_path):
         pose = view.object_pose @ yaw(turn)
         return ground_truth_occupancy(shapes[view.identity], pose, view.grid_pose, np.eye(4))
 
-    args = argparse.Namespace(data=str(root), samples=4, max_mugs=None, out=str(tmp_path / "out"), seed=0,
-                              no_progress=True)
-    files = run_handles(args, {"agree": TurningCompleter(turned, [0, 0, 0, 0]),
-                               "spread": TurningCompleter(turned, [0, 90, 180, -90])})
+    config = HandlesConfig(data=str(root), samples=4, out=str(tmp_path / "out"), progress=False)
+    result = run_handles(config, {"agree": TurningCompleter(turned, [0, 0, 0, 0]),
+                                  "spread": TurningCompleter(turned, [0, 90, 180, -90])})
+    files = write_report(handles_report(result), config.out)
     rows = list(csv.DictReader(open(files["summary_csv"])))
     got = {r["method"]: r for r in rows}
     assert float(got["agree"]["handle_rate"]) == 1.0 and float(got["agree"]["spread_deg"]) < 5

@@ -15,16 +15,16 @@ import pytest
 
 from pssnet_core.data.build import build
 from pssnet_core.data.store import DatasetReader
-from pssnet_core.evaluation.memorisation import (
-    MemorisationConfig,
+from pssnet_core.evaluation.experiment import write_report
+from pssnet_core.evaluation.memorisation import MemorisationConfig, dataset_roots, run_memorisation
+from pssnet_core.evaluation.memorisation_report import memorisation_report
+from pssnet_core.evaluation.memorisation_search import (
     MemorisationError,
-    MemorisationRun,
+    SearchConfig,
     TrainingIndex,
     brute_force_nearest,
-    dataset_roots,
     nearest_training,
     pooled_features,
-    run_memorisation,
 )
 from pssnet_core.evaluation.metrics import chamfer_matrix
 
@@ -78,10 +78,10 @@ def test_prefilter_finds_the_exact_nearest_on_a_small_set():
         grid[tuple(drop.T)] = False
         grid[tuple(np.clip(drop + rng.integers(-1, 2, size=drop.shape), 0, N - 1).T)] = True
     queries = np.concatenate([novel, noisy])
-    index = TrainingIndex.from_grids(train, VOXEL, MemorisationConfig(top_k=8))
+    index = TrainingIndex.from_grids(train, VOXEL, SearchConfig(top_k=8))
     exact, exact_at = brute_force_nearest(queries, index)
     # query_chunk 1: each query sees its own top 8 only (no help from the candidates of other queries).
-    found, found_at = nearest_training(queries, index, MemorisationConfig(top_k=8, query_chunk=1))
+    found, found_at = nearest_training(queries, index, SearchConfig(top_k=8, query_chunk=1))
     np.testing.assert_allclose(found, exact, atol=1e-12)
     # The brute force is right: the first query against every training grid, directly.
     np.testing.assert_allclose(exact[0], chamfer_matrix(queries[:1], train, VOXEL).min(), atol=1e-12)
@@ -125,9 +125,9 @@ def test_a_planted_training_shape_is_found(tiny_data, tmp_path):
     planted_at = 4
     planted = train.get(planted_at, images=False)
     completer = PlantingCompleter(tiny_data / "test" / "mugs", planted["occupancy"])
-    run = MemorisationRun(train_data=[str(tiny_data / "train")], data=str(tiny_data), out=str(tmp_path / "out"),
-                          sets=("mugs",), samples=2, verify=2, progress=False)
-    files = run_memorisation(run, {"planter": completer})
+    config = MemorisationConfig(train_data=[str(tiny_data / "train")], data=str(tiny_data),
+                                out=str(tmp_path / "out"), sets=("mugs",), samples=2, verify=2, progress=False)
+    files = write_report(memorisation_report(run_memorisation(config, {"planter": completer})), config.out)
     rows = list(csv.DictReader(open(files["csv"])))
     assert len(rows) == 3 * 2
     for row in rows:

@@ -16,8 +16,11 @@ import pytest
 from pssnet_core.data.build import build
 from pssnet_core.data.datasets import DatasetSpec, DatasetSpecError, dataset_specs
 from pssnet_core.data.store import DatasetReader
-from pssnet_core.evaluation.ambiguity import AmbiguityError, AmbiguityRun, run_ambiguity
-from pssnet_core.evaluation.cli import run_evaluation
+from pssnet_core.evaluation.ambiguity import AmbiguityConfig, AmbiguityError, run_ambiguity
+from pssnet_core.evaluation.ambiguity_report import ambiguity_report
+from pssnet_core.evaluation.evaluate import EvaluateConfig, TestSetsConfig, run_evaluation
+from pssnet_core.evaluation.experiment import write_report
+from pssnet_core.evaluation.report import evaluation_report
 from pssnet_core.evaluation.testsets import OOF_TEST_SETS, find_test_set
 from pssnet_core.shapes import BOX_FAMILIES, MUG_FAMILIES, ShapeId
 from pssnet_core.shapes.registry_objects import registry_identities
@@ -56,6 +59,8 @@ def oof_sets(tmp_path_factory):
 class TruthCompleter:
     """Stand-in completer: every sample is the view's stored ground truth."""
 
+    has_box_latent = False
+
     def __init__(self, root) -> None:
         self.truth = {}
         for name in OOF_TEST_SETS:
@@ -81,9 +86,9 @@ def test_tiny_oof_build_records_the_new_families(oof_sets):
 
 
 def test_ambiguity_runs_on_the_oof_sets(oof_sets, tmp_path):
-    run = AmbiguityRun(data=str(oof_sets), out=str(tmp_path / "amb"), sets=("oof_mugs", "oof_narrow"), samples=3,
-                       progress=False)
-    files = run_ambiguity(run, {"truth": TruthCompleter(oof_sets)})
+    config = AmbiguityConfig(data=str(oof_sets), out=str(tmp_path / "amb"), sets=("oof_mugs", "oof_narrow"),
+                             samples=3, progress=False)
+    files = write_report(ambiguity_report(run_ambiguity(config, {"truth": TruthCompleter(oof_sets)})), config.out)
     result = json.loads(files["json"].read_text())
     summary = {e["delta_m"]: e for e in result["summary"]}
     for delta in (0.01, 0.04):
@@ -95,16 +100,14 @@ def test_ambiguity_runs_on_the_oof_sets(oof_sets, tmp_path):
     assert summary[0.01]["handle_error_visible_deg"] < 10.0
     assert "`oof_mugs`, `oof_narrow`" in files["markdown"].read_text()
     with pytest.raises(AmbiguityError, match="at most one mug set"):
-        run_ambiguity(AmbiguityRun(data=str(oof_sets), out=str(tmp_path / "x"), sets=("mugs", "oof_mugs")),
-                      {"truth": TruthCompleter(oof_sets)})
+        AmbiguityConfig(data=str(oof_sets), out=str(tmp_path / "x"), sets=("mugs", "oof_mugs"))
 
 
 def test_the_paper_evaluation_runs_on_the_oof_sets(oof_sets, tmp_path):
-    args = argparse.Namespace(data=str(oof_sets), sets=",".join(OOF_TEST_SETS), max_observations=None, workers=1,
-                              cache_dir=str(tmp_path / "cache"), recompute=False, outlier_fraction=0.0,
-                              outlier_count=0, record_fraction=0.01, no_progress=True, samples=2, delta=0.04,
-                              scaled_delta=0.01, out=str(tmp_path / "out"), seed=0, plot_mugs=1)
-    files = run_evaluation(args, {"truth": TruthCompleter(oof_sets)})
+    config = EvaluateConfig(TestSetsConfig(data=str(oof_sets), sets=OOF_TEST_SETS, cache_dir=str(tmp_path / "cache"),
+                                           progress=False),
+                            out=str(tmp_path / "out"), samples=2, delta=0.04, scaled_delta=0.01, plot_mugs=1)
+    files = write_report(evaluation_report(run_evaluation(config, {"truth": TruthCompleter(oof_sets)})), config.out)
     rows = list(csv.DictReader(open(files["per_observation"])))
     assert {r["set"] for r in rows} == set(OOF_TEST_SETS) and len(rows) == (8 + 8 + 8) * 2
     assert max(float(r["best_accuracy_mm"]) for r in rows) == pytest.approx(0.0, abs=1e-9)

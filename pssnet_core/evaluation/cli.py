@@ -2,42 +2,37 @@
 ``pssnet handles`` (where sampled mugs put a hidden or visible handle), ``pssnet ambiguity`` (samples against
 what each view allows: plausible handle arcs, plausible box depths through a slit), ``pssnet memorisation``
 (completions against the nearest training shape) and ``pssnet compare`` (paired differences between the methods
-of an evaluation)."""
+of an evaluation).
+
+Each command turns its arguments into the experiment's config, loads the completers, runs the experiment and
+writes its report (:mod:`pssnet_core.evaluation.experiment`).
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
-import numpy as np
-
+from pssnet_core.evaluation.evaluate import (
+    PAPER_DELTA,
+    SCALED_DELTA,
+    EvaluateConfig,
+    TestSetsConfig,
+    load_test_sets,
+    run_evaluation,
+)
+from pssnet_core.evaluation.experiment import Completer, Report, write_report
 from pssnet_core.evaluation.observation_model import ObservationModelConfig, ObservationModelError
-from pssnet_core.evaluation.plausible import (
-    PlausibleConfig,
-    PlausibleSetError,
-    PlausibleSets,
-    ShapeMeshes,
-    cached_plausible_sets,
-    dataset_fingerprint,
-)
-from pssnet_core.evaluation.testsets import (
-    MUG_SETS,
-    NARROW_SETS,
-    PAPER_TEST_SETS,
-    TEST_SETS,
-    build_command,
-    evenly_spaced_views,
-    find_test_set,
-    load_test_set,
-)
+from pssnet_core.evaluation.plausible import PlausibleSetError
+from pssnet_core.evaluation.testsets import PAPER_TEST_SETS, TEST_SETS
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 
-PAPER_DELTA = 0.04
-SCALED_DELTA = 0.01
+if TYPE_CHECKING:  # the experiments' own modules load when their command runs
+    from pssnet_core.evaluation.ambiguity import AmbiguityConfig
+    from pssnet_core.evaluation.handles import HandlesConfig
+    from pssnet_core.evaluation.memorisation import MemorisationConfig
 
 
 class EvaluationCliError(ValueError):
@@ -233,7 +228,7 @@ def _guard(handler):
         try:
             return handler(args)
         except (EvaluationCliError, PlausibleSetError, ObservationModelError, ValueError, OSError) as error:
-            # (HandleMeasureError, CheckpointError and DatasetError are ValueErrors too)
+            # (the experiments' own errors, CheckpointError and DatasetError are ValueErrors too)
             print(f"pssnet {args.command}: error: {error}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
@@ -241,84 +236,25 @@ def _guard(handler):
     return run
 
 
-def _set_names(text: str) -> list[str]:
-    names = [s.strip() for s in text.split(",") if s.strip()]
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
+def _models(text: str) -> list[str]:
+    models = list(_names(text))
+    if not models:
+        raise EvaluationCliError("--models is empty")
+    if len(set(models)) != len(models):  # names key the results: a repeated one would hide a model
+        raise EvaluationCliError(f"--models names must differ (they label the results), got {text!r}")
+    return models
+
+
+def _set_names(text: str) -> tuple[str, ...]:
+    names = _names(text)
     unknown = [n for n in names if n not in TEST_SETS]
     if unknown:
         raise EvaluationCliError(f"unknown test sets {unknown}; known: {list(TEST_SETS)}")
     return names
-
-
-def _references(count: int, max_observations: int | None) -> list[int] | None:
-    if max_observations is None or max_observations >= count:
-        return None
-    if max_observations < 1:
-        raise EvaluationCliError(f"--max-observations must be >= 1, got {max_observations}")
-    return evenly_spaced_views(count, max_observations)
-
-
-def _dense_mug_views(views: list[Any], count: int, step: int) -> list[int]:
-    """Every ``step``-th view of the first ``count`` mugs that have a handle (views of a mug are consecutive)."""
-    if count < 0 or step < 1:
-        raise EvaluationCliError(f"--dense-mugs must be >= 0 and --dense-step >= 1, got {count} and {step}")
-    mugs: list[str] = []
-    for view in views:
-        if view.meta.get("has_handle") and view.identity not in mugs:
-            mugs.append(view.identity)
-    chosen = set(mugs[:count])
-    out, seen = [], {}
-    for k, view in enumerate(views):
-        if view.identity in chosen:
-            if seen.setdefault(view.identity, 0) % step == 0:
-                out.append(k)
-            seen[view.identity] += 1
-    return out
-
-
-def _plausible_for(args: argparse.Namespace, deltas: tuple[float, ...],
-                   runner: TaskRunner) -> dict[str, tuple[list, PlausibleSets, list[int]]]:
-    """Loads each requested test set and its plausible sets (cached, resumed or computed by ``runner``)."""
-    progress = not args.no_progress
-    config = PlausibleConfig(deltas=deltas, record_fraction=max(args.record_fraction, args.outlier_fraction),
-                             observation=ObservationModelConfig(outlier_fraction=args.outlier_fraction,
-                                                                outlier_count=args.outlier_count))
-    out = {}
-    found_any = False
-    for name in _set_names(args.sets):
-        root = find_test_set(args.data, name)
-        if root is None:
-            print(f"{name}: no test set under {args.data} (skipped; build it with `{build_command(name)}`)")
-            continue
-        found_any = True
-        views, _ = load_test_set(root, progress=progress)
-        refs = _references(len(views), args.max_observations)
-        if name in MUG_SETS and refs is not None and getattr(args, "dense_mugs", 0):
-            refs = sorted(set(refs) | set(_dense_mug_views(views, args.dense_mugs, args.dense_step)))
-        cache = Path(args.cache_dir) if args.cache_dir else root / "plausible_cache"
-        t0 = time.perf_counter()
-        sets, path, hit = cached_plausible_sets(views, ShapeMeshes(), dataset_fingerprint(root), cache, config,
-                                                refs, runner=runner, progress=progress,
-                                                desc=f"plausible {name}", recompute=args.recompute)
-        s = sets.stats
-        state = "cached" if hit else f"computed in {time.perf_counter() - t0:.1f} s"
-        if not hit and s.get("resumed_references"):
-            state += f", {s['resumed_references']} references resumed from an interrupted run"
-        sizes = {d: float(np.mean(list(sets.sizes(d).values()))) for d in deltas}
-        where = s.get("executor") or f"{s['workers']} workers"  # caches written before Ray lack "executor"
-        print(f"{name}: {len(views)} observations, {len(sets.references)} references, {s['pairs']} pairs "
-              f"({state}; {s['pairs_per_second']:.0f} pairs/s, {where}, when computed); "
-              f"mean set size {', '.join(f'{d * 100:g} cm: {v:.1f}' for d, v in sizes.items())}; "
-              f"own ground truth plausible: {s['own_ground_truth_plausible_rate']} -> {path}")
-        out[name] = (views, sets, [int(i) for i in sets.references])
-    if not found_any:
-        raise EvaluationCliError(f"no test sets {args.sets} found under {args.data}")
-    return out
-
-
-def _plausible_command(args: argparse.Namespace) -> int:
-    with TaskRunner(ray_config(args)) as runner:
-        _plausible_for(args, tuple(args.deltas), runner)
-    return 0
 
 
 def resolve_checkpoints(models: list[str], spec: str) -> dict[str, Path]:
@@ -344,14 +280,14 @@ def resolve_checkpoints(models: list[str], spec: str) -> dict[str, Path]:
 
 def load_completers(models: list[str], spec: str, device: str, threads: int | None,
                     samplers: tuple[str, ...] = ("posterior",), check_delta: float | None = None,
-                    box_temperatures: tuple[float, ...] | None = None) -> dict[str, Any]:
+                    box_temperatures: tuple[float, ...] | None = None) -> dict[str, Completer]:
     """Completers by method name (``pssnet_core.inference.Completer``).
 
     With ``samplers`` holding "checked", each latent-variable model also appears as ``<model>_checked``: the same
     checkpoint behind :class:`pssnet_core.sampling.CheckedSampler` (``check_delta`` metres, default its own). A
     model without a latent (3D-RecGAN++) has no checked variant and is listed once, with a note on stderr.
     """
-    from pssnet_core.inference import Completer
+    from pssnet_core.inference import Completer as ModelCompleter
     from pssnet_core.models.base import check_box_temperature
     from pssnet_core.sampling import SAMPLERS, CheckedSampler, CheckedSamplerConfig
 
@@ -364,11 +300,11 @@ def load_completers(models: list[str], spec: str, device: str, threads: int | No
         config = CheckedSamplerConfig() if check_delta is None else CheckedSamplerConfig(delta=check_delta)
     except ValueError as error:
         raise EvaluationCliError(f"--check-delta: {error}") from error
-    out: dict[str, Any] = {}
+    out: dict[str, Completer] = {}
     for (model, path), temperature in zip(resolve_checkpoints(models, spec).items(), temperatures, strict=True):
-        completer = Completer.from_checkpoint(path, device=device, threads=threads)
+        completer = ModelCompleter.from_checkpoint(path, device=device, threads=threads)
         try:
-            completer.box_temperature = check_box_temperature(temperature, getattr(completer.model, "box_dim", 0) > 0)
+            completer.box_temperature = check_box_temperature(temperature, completer.has_box_latent)
         except ValueError as error:
             raise EvaluationCliError(f"{model}: {error}") from error
         if "posterior" in samplers:
@@ -383,240 +319,140 @@ def load_completers(models: list[str], spec: str, device: str, threads: int | No
     return out
 
 
-def run_evaluation(args: argparse.Namespace, completers: dict[str, Any]) -> dict[str, Path]:
-    """The evaluation behind ``pssnet evaluate`` with given completers (tests pass fakes). Returns written files."""
-    from pssnet_core.evaluation.evaluate import EvaluationOutput, evaluate_set
-    from pssnet_core.evaluation.report import (
-        markdown_table,
-        plot_coverage_vs_rotation,
-        plot_samples_vs_plausible,
-        summarise,
-        write_csv,
-    )
-
-    if args.samples < 1:
-        raise EvaluationCliError(f"--samples must be >= 1, got {args.samples}")
-    deltas = (args.delta,) + ((args.scaled_delta,) if args.scaled_delta and args.scaled_delta > 0 else ())
-    if len(set(deltas)) != len(deltas):
-        deltas = (args.delta,)
-    out_dir = Path(args.out)
-    output = EvaluationOutput()
-    # One Ray for the whole command; completers on a GPU take a whole GPU per task.
-    gpus_per_task = 1.0 if str(getattr(args, "device", "cpu")).startswith("cuda") else 0.0
-    with TaskRunner(ray_config(args)) as runner:
-        loaded = _plausible_for(args, deltas, runner)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        t0 = time.perf_counter()
-        for name, (views, sets, refs) in loaded.items():
-            # One example per figure set: the first occluded-handle mug, the first narrow-slit observation.
-            if name in MUG_SETS:
-                hidden = [i for i in refs if views[i].meta.get("handle_visible") is False]
-                keep = hidden[len(hidden) // 2:][:1]
-            elif name in NARROW_SETS:
-                keep = refs[len(refs) // 2:][:1]
-            else:
-                keep = []
-            evaluate_set(name, views, ShapeMeshes(), sets, completers, deltas, args.samples, args.seed, refs,
-                         keep=keep, progress=not args.no_progress, output=output, runner=runner,
-                         gpus_per_task=gpus_per_task)
-    methods = list(completers)
-    summary = summarise(output.rows, methods, deltas)
-    notes = {args.delta: "the paper's value"}
-    if len(deltas) > 1:
-        notes[deltas[1]] = "scaled to real-size objects, see DESIGN.md"
-    header = ["# Plausible-diversity evaluation", "",
-              "Chamfer distances between voxel-centre clouds, millimetres (lower is better). best acc = M_A, "
-              "coverage = M_C, avg plausibility = M_P, plausible diversity = M_PD = M_C + M_P.", "",
-              f"Command: `pssnet evaluate {' '.join(sys.argv[2:]) if sys.argv[1:2] == ['evaluate'] else ''}`", "",
-              f"Samples per observation: {args.samples}; outlier allowance: fraction {args.outlier_fraction}, "
-              f"count {args.outlier_count}; sets: "
-              f"{', '.join(f'{k} ({len(v[2])} observations)' for k, v in loaded.items())}.",
-              ""]
-    files = {"markdown": out_dir / "results.md"}
-    files["markdown"].write_text("\n".join(header) + markdown_table(summary, methods, deltas, notes))
-    files["csv"] = write_csv(out_dir / "results.csv", summary)
-    files["per_observation"] = write_csv(out_dir / "per_observation.csv", output.rows)
-    plot = plot_coverage_vs_rotation(out_dir / "coverage_vs_rotation.png", output.rows, methods, deltas,
-                                     args.plot_mugs)
-    if plot is not None:
-        files["coverage_plot"] = plot
-    for method in methods:
-        examples = [e for e in output.examples if abs(e.delta - deltas[-1]) < 1e-12]
-        png = plot_samples_vs_plausible(out_dir / f"samples_{method}.png", examples, method)
-        if png is not None:
-            files[f"samples_{method}"] = png
-    timings = dict(output.timings, evaluate_seconds=time.perf_counter() - t0)
-    (out_dir / "evaluation_info.json").write_text(json.dumps(
-        {"deltas": deltas, "methods": methods, "samples": args.samples, "timings": timings,
-         "plausible_stats": {k: v[1].stats for k, v in loaded.items()}}, indent=2, default=str))
+def _write(report: Report, out: str) -> dict[str, Path]:
+    """Writes the report into ``out``, prints its Markdown and the files written."""
+    files = write_report(report, out)
+    print(files["markdown"].read_text())
+    print("wrote " + ", ".join(str(p) for p in files.values()))
     return files
+
+
+# ------------------------------------------------------------------------------------------ plausible
+
+
+def test_sets_config(args: argparse.Namespace) -> TestSetsConfig:
+    """The test sets and plausible-set parameters of ``pssnet plausible`` / ``pssnet evaluate``."""
+    return TestSetsConfig(
+        data=args.data, sets=_set_names(args.sets), max_observations=args.max_observations,
+        dense_mugs=args.dense_mugs, dense_step=args.dense_step, cache_dir=args.cache_dir, recompute=args.recompute,
+        observation=ObservationModelConfig(outlier_fraction=args.outlier_fraction, outlier_count=args.outlier_count),
+        record_fraction=args.record_fraction, progress=not args.no_progress)
+
+
+def _plausible_command(args: argparse.Namespace) -> int:
+    config = test_sets_config(args)
+    with TaskRunner(ray_config(args)) as runner:
+        load_test_sets(config, tuple(args.deltas), runner)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------- evaluate
+
+
+def evaluate_config(args: argparse.Namespace) -> EvaluateConfig:
+    """The :class:`~pssnet_core.evaluation.evaluate.EvaluateConfig` of ``pssnet evaluate``'s arguments."""
+    # Completers on a GPU take a whole GPU per Ray task.
+    return EvaluateConfig(test_sets=test_sets_config(args), out=args.out, samples=args.samples, delta=args.delta,
+                          scaled_delta=args.scaled_delta, seed=args.seed, plot_mugs=args.plot_mugs,
+                          ray=ray_config(args), gpus_per_task=1.0 if str(args.device).startswith("cuda") else 0.0)
 
 
 def _evaluate_command(args: argparse.Namespace) -> int:
+    from pssnet_core.evaluation.report import evaluation_report
+
+    config = evaluate_config(args)  # parameters checked before the models load
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
                                  args.check_delta, args.model_box_temperatures)
-    files = run_evaluation(args, completers)
-    print((Path(args.out) / "results.md").read_text())
-    print("wrote " + ", ".join(str(p) for p in files.values()))
+    command = " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else ""
+    _write(evaluation_report(run_evaluation(config, completers), command), config.out)
     return 0
 
 
-def _closest(views: list[Any], rotation: float) -> Any:
-    return min(views, key=lambda v: abs((float(v.meta.get("rotation_deg", 0.0)) - rotation + 180) % 360 - 180))
+# -------------------------------------------------------------------------------------------- handles
 
 
-def run_handles(args: argparse.Namespace, completers: dict[str, Any]) -> dict[str, Path]:
-    """The measurement behind ``pssnet handles`` with given completers. Returns the files written."""
-    from tqdm import tqdm
+def handles_config(args: argparse.Namespace) -> HandlesConfig:
+    """The :class:`~pssnet_core.evaluation.handles.HandlesConfig` of ``pssnet handles``' arguments."""
+    from pssnet_core.evaluation.handles import HandlesConfig
 
-    from pssnet_core.data.store import DatasetReader
-    from pssnet_core.evaluation.handles import (
-        handle_azimuths,
-        handle_geometries,
-        handle_stats,
-        plot_handle_samples,
-        stats_row,
-        summarise_handles,
-    )
-    from pssnet_core.evaluation.report import write_csv
-
-    if args.samples < 2:
-        raise EvaluationCliError(f"--samples must be >= 2 to measure a spread, got {args.samples}")
-    root = find_test_set(args.data, "mugs")
-    if root is None:
-        raise EvaluationCliError(f"no mugs test set under {args.data} (build it with "
-                                 "`pssnet dataset build --family mugs --split test`)")
-    views, _ = load_test_set(root, progress=not args.no_progress)
-    by_mug: dict[str, list[Any]] = {}
-    for view in views:
-        by_mug.setdefault(view.identity, []).append(view)
-    # Square bodies and handle-less mugs have no handle azimuth: skipped.
-    geometries = handle_geometries(by_mug, args.max_mugs)
-    if not geometries:
-        raise EvaluationCliError(f"{root} holds no round mug with a handle")
-    chosen = [v for identity in geometries for v in by_mug[identity]]
-    rows = []
-    for view in tqdm(chosen, desc="handles", disable=args.no_progress):
-        for method, completer in completers.items():
-            samples = completer.complete(view, num_samples=args.samples, seed=args.seed).occupancy
-            rows.append(stats_row(method, view, handle_stats(samples, view, geometries[view.identity])))
-    methods = list(completers)
-    summary = summarise_handles(rows, methods)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    files = {"csv": write_csv(out / "handles.csv", rows),
-             "summary_csv": write_csv(out / "handles_summary.csv", summary)}
-    lines = ["# Where sampled mugs put the handle", "",
-             f"{len(geometries)} round held-out mugs with a handle from `{root}`, {len(chosen)} views, "
-             f"{args.samples} samples per view, seed {args.seed}. Azimuths in the mug's frame (true handle = 0 deg); "
-             "spread = circular standard deviation of the handle azimuth across samples; error = mean |azimuth|; "
-             "pairwise = mean chamfer distance between two samples of the same view (mm). "
-             "See `pssnet_core/evaluation/handles.py`.", "",
-             "| method | handle | views | samples with a handle | azimuth spread (deg) | azimuth error (deg) "
-             "| pairwise (mm) |", "|---|---|---|---|---|---|---|"]
-    for r in summary:
-        lines.append(f"| {r['method']} | {r['handle']} | {r['views']} | {r['handle_rate']:.2f} | "
-                     f"{r['spread_deg']:.1f} | {r['error_deg']:.1f} | {r['pairwise_mm']:.2f} |")
-    files["markdown"] = out / "handles.md"
-    files["markdown"].write_text("\n".join(lines) + "\n")
-    # Figures: the first measurable mug, handle straight behind the body (hidden) and seen side-on (visible).
-    first = by_mug[next(iter(geometries))]
-    reader = DatasetReader(root)
-    for label, candidates, rotation in (
-            ("hidden", [v for v in first if not v.meta.get("handle_visible")], 0.0),
-            ("visible", [v for v in first if v.meta.get("handle_visible")], 90.0)):
-        if not candidates:
-            continue
-        view = _closest(candidates, rotation)
-        grids, azimuths = {}, {}
-        for method, completer in completers.items():
-            grids[method] = completer.complete(view, num_samples=8, seed=args.seed).occupancy
-            azimuths[method] = handle_azimuths(grids[method], view.grid_pose, view.object_pose,
-                                               geometries[view.identity])
-        truth = reader.get(view.index, images=False)["occupancy"]
-        files[f"figure_{label}"] = plot_handle_samples(
-            out / f"handle_samples_{label}.png", truth, grids, azimuths,
-            f"{view.identity}, rotation {view.meta.get('rotation_deg')} deg: handle {label} "
-            f"(true handle azimuth 0 deg)")
-    return files
+    return HandlesConfig(data=args.data, out=args.out, samples=args.samples, max_mugs=args.max_mugs, seed=args.seed,
+                         progress=not args.no_progress)
 
 
 def _handles_command(args: argparse.Namespace) -> int:
-    models = [m.strip() for m in args.models.split(",") if m.strip()]
-    if not models:
-        raise EvaluationCliError("--models is empty")
-    files = run_handles(args, load_completers(models, args.checkpoints, args.device, args.threads))
-    print((Path(args.out) / "handles.md").read_text())
-    print("wrote " + ", ".join(str(p) for p in files.values()))
+    from pssnet_core.evaluation.handles import run_handles
+    from pssnet_core.evaluation.handles_report import handles_report
+
+    config = handles_config(args)
+    completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads)
+    _write(handles_report(run_handles(config, completers)), config.out)
     return 0
 
 
-def _names(text: str) -> tuple[str, ...]:
-    return tuple(part.strip() for part in text.split(",") if part.strip())
+# ------------------------------------------------------------------------------------------ ambiguity
 
 
-def _models(text: str) -> list[str]:
-    models = [m.strip() for m in text.split(",") if m.strip()]
-    if not models:
-        raise EvaluationCliError("--models is empty")
-    if len(set(models)) != len(models):  # names key the results: a repeated one would hide a model
-        raise EvaluationCliError(f"--models names must differ (they label the results), got {text!r}")
-    return models
+def ambiguity_config(args: argparse.Namespace) -> AmbiguityConfig:
+    """The :class:`~pssnet_core.evaluation.ambiguity.AmbiguityConfig` of ``pssnet ambiguity``'s arguments."""
+    from pssnet_core.evaluation.ambiguity import AmbiguityConfig
+    from pssnet_core.evaluation.ambiguity_sets import AmbiguityMeasure
 
-
-def ambiguity_run(args: argparse.Namespace) -> Any:
-    """The :class:`~pssnet_core.evaluation.ambiguity.AmbiguityRun` of ``pssnet ambiguity``'s arguments."""
-    from pssnet_core.evaluation.ambiguity import AmbiguityConfig, AmbiguityRun
-
-    config = AmbiguityConfig(
+    measure = AmbiguityMeasure(
         deltas=tuple(args.deltas),
         observation=ObservationModelConfig(outlier_fraction=args.outlier_fraction, outlier_count=args.outlier_count),
         azimuth_step_deg=args.azimuth_step, arc_tolerance_deg=args.arc_tolerance, arc_margin_deg=args.arc_margin,
         extent_step_voxels=args.extent_step, extent_tolerance_voxels=args.extent_tolerance,
         extent_margin_voxels=args.extent_margin, rerender=not args.no_rerender)
-    return AmbiguityRun(data=args.data, out=args.out, sets=tuple(_set_names(args.sets)), samples=args.samples,
-                        box_temperatures=tuple(args.box_temperatures), max_views=args.max_views, seed=args.seed,
-                        progress=not args.no_progress, figure_views=args.figure_views, cache_dir=args.cache_dir,
-                        config=config)
+    return AmbiguityConfig(data=args.data, out=args.out, sets=_set_names(args.sets), samples=args.samples,
+                           box_temperatures=tuple(args.box_temperatures), max_views=args.max_views, seed=args.seed,
+                           progress=not args.no_progress, figure_views=args.figure_views, cache_dir=args.cache_dir,
+                           measure=measure)
 
 
 def _ambiguity_command(args: argparse.Namespace) -> int:
     from pssnet_core.evaluation.ambiguity import run_ambiguity
+    from pssnet_core.evaluation.ambiguity_report import ambiguity_report
 
-    run = ambiguity_run(args)  # parameters checked before the models load
-    files = run_ambiguity(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads,
-                                                    args.samplers, args.check_delta))
-    print(files["markdown"].read_text())
-    print("wrote " + ", ".join(str(p) for p in files.values()))
+    config = ambiguity_config(args)  # parameters checked before the models load
+    completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
+                                 args.check_delta)
+    _write(ambiguity_report(run_ambiguity(config, completers)), config.out)
     return 0
 
 
-def memorisation_run(args: argparse.Namespace) -> Any:
-    """The :class:`~pssnet_core.evaluation.memorisation.MemorisationRun` of ``pssnet memorisation``'s arguments."""
-    from pssnet_core.evaluation.memorisation import MemorisationConfig, MemorisationRun
+# --------------------------------------------------------------------------------------- memorisation
 
-    return MemorisationRun(train_data=[p.strip() for p in args.train_data.split(",") if p.strip()], data=args.data,
-                           out=args.out, sets=tuple(_set_names(args.sets)), samples=args.samples,
-                           max_views=args.max_views, seed=args.seed, verify=args.verify,
-                           progress=not args.no_progress,
-                           config=MemorisationConfig(pool=args.pool, top_k=args.top_k))
+
+def memorisation_config(args: argparse.Namespace) -> MemorisationConfig:
+    """The :class:`~pssnet_core.evaluation.memorisation.MemorisationConfig` of ``pssnet memorisation``'s
+    arguments."""
+    from pssnet_core.evaluation.memorisation import MemorisationConfig
+    from pssnet_core.evaluation.memorisation_search import SearchConfig
+
+    return MemorisationConfig(train_data=list(_names(args.train_data)), data=args.data, out=args.out,
+                              sets=_set_names(args.sets), samples=args.samples, max_views=args.max_views,
+                              seed=args.seed, verify=args.verify, progress=not args.no_progress,
+                              search=SearchConfig(pool=args.pool, top_k=args.top_k))
 
 
 def _memorisation_command(args: argparse.Namespace) -> int:
     from pssnet_core.evaluation.memorisation import run_memorisation
+    from pssnet_core.evaluation.memorisation_report import memorisation_report
 
-    run = memorisation_run(args)
-    files = run_memorisation(run, load_completers(_models(args.models), args.checkpoints, args.device, args.threads))
-    print(files["markdown"].read_text())
-    print("wrote " + ", ".join(str(p) for p in files.values()))
+    config = memorisation_config(args)
+    completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads)
+    _write(memorisation_report(run_memorisation(config, completers)), config.out)
     return 0
+
+
+# -------------------------------------------------------------------------------------------- compare
 
 
 def _compare_command(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
     from pssnet_core.evaluation.compare import CompareConfig, markdown, paired_differences, read_per_observation
-    from pssnet_core.evaluation.report import write_csv
+    from pssnet_core.evaluation.experiment import write_csv
 
     config = CompareConfig(metric=args.metric, confidence=args.confidence, resamples=args.resamples, seed=args.seed,
                            references=args.references)

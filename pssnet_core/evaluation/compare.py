@@ -20,7 +20,7 @@ from scipy import stats
 
 from pssnet_core.evaluation.metrics import METRIC_NAMES
 from pssnet_core.evaluation.report import SUBSETS
-from pssnet_core.evaluation.testsets import evenly_spaced_views
+from pssnet_core.spread import evenly_spaced
 
 
 class CompareError(ValueError):
@@ -96,7 +96,7 @@ def paired_differences(rows: Sequence[dict[str, Any]], methods: Sequence[str], b
     for r in rows:
         set_sizes[r["set"]] = max(set_sizes.get(r["set"], 0), r["index"] + 1)
     # the views `pssnet evaluate --max-observations N` scores (without --dense-mugs)
-    chosen = ({name: set(evenly_spaced_views(size, config.references)) for name, size in set_sizes.items()}
+    chosen = ({name: set(evenly_spaced(size, config.references)) for name, size in set_sizes.items()}
               if config.references is not None else None)
     # (delta, set, index) -> method -> row: the pairing key of one observation
     by_key: dict[tuple[float, str, int], dict[str, dict[str, Any]]] = {}

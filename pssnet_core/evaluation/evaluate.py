@@ -1,9 +1,11 @@
-"""Runs completers on test observations and scores them against the plausible sets.
+"""``pssnet evaluate``: completers scored against the plausible sets (the paper's table and figures).
 
-For each reference observation: the plausible shapes of every delta are rebuilt once as occupancy grids of the
-observation's grid (:func:`pssnet_core.geometry.solid_occupancy`), then each completer draws ``samples``
-completions and the metrics of :mod:`pssnet_core.evaluation.metrics` are computed per delta. The result is one row per
-(test set, observation, method, delta), which :mod:`pssnet_core.evaluation.report` turns into tables and plots.
+:func:`run_evaluation` loads the test sets and their plausible sets (:func:`load_test_sets`, cached on disk),
+then scores every completer on each set (:func:`evaluate_set`). For each reference observation: the plausible
+shapes of every delta are rebuilt once as occupancy grids of the observation's grid
+(:func:`pssnet_core.geometry.solid_occupancy`), then each completer draws ``samples`` completions and the metrics
+of :mod:`pssnet_core.evaluation.metrics` are computed per delta. The result is one row per (test set, observation,
+method, delta), which :func:`pssnet_core.evaluation.report.evaluation_report` turns into tables and plots.
 Each observation is a Ray task (:mod:`pssnet_core.ray_tasks`); views, meshes, plausible sets and the completers go
 into the object store once. Observation ``i`` draws its samples with seed ``seed + i`` wherever it runs.
 """
@@ -11,35 +13,47 @@ into the object store once. Observation ``i`` draws its samples with seed ``seed
 from __future__ import annotations
 
 import time
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from pssnet_core.evaluation.experiment import Completer, sample_occupancy
 from pssnet_core.evaluation.metrics import chamfer_matrix, distance_fields, metrics_from_distances
+from pssnet_core.evaluation.observation_model import ObservationModelConfig
 from pssnet_core.evaluation.plausible import (
     EvalView,
     MeshSource,
     MeshTable,
+    PlausibleConfig,
     PlausibleSets,
+    ShapeMeshes,
+    cached_plausible_sets,
+    dataset_fingerprint,
     plausible_shape_occupancy,
 )
-from pssnet_core.ray_tasks import TaskRunner
+from pssnet_core.evaluation.testsets import (
+    MUG_SETS,
+    NARROW_SETS,
+    PAPER_TEST_SETS,
+    TEST_SETS,
+    build_command,
+    find_test_set,
+    load_test_set,
+)
+from pssnet_core.ray_tasks import RayConfig, TaskRunner
+from pssnet_core.spread import evenly_spaced
+
+#: the paper's delta (m)
+PAPER_DELTA = 0.04
+#: the delta scaled to real-size objects (m), see DESIGN.md
+SCALED_DELTA = 0.01
 
 
 class EvaluationError(ValueError):
     """The evaluation cannot run as asked (mismatched grids, missing sets)."""
-
-
-class SampleSource(Protocol):
-    """What the evaluation needs of a completer (``pssnet_core.inference.Completer`` fits)."""
-
-    grid_size: int
-
-    def complete(self, observation: Any, num_samples: int = 20, seed: int = 0) -> Any:  # -> has .occupancy
-        """``observation`` is the :class:`~pssnet_core.evaluation.plausible.EvalView` (``network_input()``, its grids
-        and grid pose)."""
 
 
 @dataclass
@@ -75,7 +89,7 @@ class _ObservationScores:
 
 
 def _score_observation(i: int, set_name: str, views: Sequence[EvalView], meshes: MeshSource, sets: PlausibleSets,
-                       completers: Mapping[str, SampleSource], deltas: Sequence[float], num_samples: int, seed: int,
+                       completers: Mapping[str, Completer], deltas: Sequence[float], num_samples: int, seed: int,
                        keep: Collection[int]) -> _ObservationScores:
     """The unit of work (a Ray task): every completer's samples of observation ``i`` against its plausible sets."""
     view = views[i]
@@ -99,8 +113,7 @@ def _score_observation(i: int, set_name: str, views: Sequence[EvalView], meshes:
     meta = {k: v for k, v in view.meta.items() if isinstance(v, bool | int | float | str | np.bool_)}
     for name, completer in completers.items():
         t2 = time.perf_counter()
-        samples = np.asarray(completer.complete(view, num_samples=num_samples,
-                                                seed=seed + i).occupancy, dtype=bool)
+        samples = sample_occupancy(completer, view, num_samples, seed + i)
         t3 = time.perf_counter()
         out.seconds["models"] += t3 - t2
         dist = chamfer_matrix(samples, shapes, voxel, fields_b=fields)
@@ -117,7 +130,7 @@ def _score_observation(i: int, set_name: str, views: Sequence[EvalView], meshes:
 
 
 def evaluate_set(set_name: str, views: Sequence[EvalView], meshes: MeshSource, sets: PlausibleSets,
-                 completers: Mapping[str, SampleSource], deltas: Sequence[float], num_samples: int = 100,
+                 completers: Mapping[str, Completer], deltas: Sequence[float], num_samples: int = 100,
                  seed: int = 0, references: Sequence[int] | None = None, keep: Collection[int] = (),
                  progress: bool = True, output: EvaluationOutput | None = None, runner: TaskRunner | None = None,
                  gpus_per_task: float = 0.0) -> EvaluationOutput:
@@ -171,3 +184,196 @@ def evaluate_set(set_name: str, views: Sequence[EvalView], meshes: MeshSource, s
     out.timings[f"{set_name}_sampling_s"] = seconds["models"]
     out.timings[f"{set_name}_metrics_s"] = seconds["metrics"]
     return out
+
+
+# --------------------------------------------------------------------------------------- the experiment
+
+
+@dataclass(frozen=True)
+class TestSetsConfig:
+    """The test observations to score and how their plausible sets are made (Alg. 2, cached on disk).
+
+    Attributes:
+        data: directory holding the test sets (``DATA/mugs`` or ``DATA/test/mugs``, ...).
+        sets: test-set names; a set not found under ``data`` is skipped with a note.
+        max_observations: score only this many observations per set, evenly spaced (None = all); the candidates
+            of each plausible set are always all.
+        dense_mugs: with ``max_observations``: also score every ``dense_step``-th view of the first K mugs with a
+            handle (a full turn for the coverage-vs-rotation plot).
+        dense_step: view stride of ``dense_mugs``.
+        cache_dir: plausible-set cache (None = ``DATA_SET/plausible_cache``).
+        recompute: ignore cached plausible sets.
+        observation: the observation model's outlier allowance (its delta is set per delta).
+        record_fraction: store candidates up to this violating fraction (allowances up to it need no recompute).
+        progress: tqdm bars.
+    """
+
+    data: str
+    sets: tuple[str, ...] = PAPER_TEST_SETS
+    max_observations: int | None = None
+    dense_mugs: int = 0
+    dense_step: int = 2
+    cache_dir: str | None = None
+    recompute: bool = False
+    observation: ObservationModelConfig = ObservationModelConfig()
+    record_fraction: float = 0.01
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        unknown = [n for n in self.sets if n not in TEST_SETS]
+        if unknown:
+            raise EvaluationError(f"unknown test sets {unknown}; known: {list(TEST_SETS)}")
+        if self.max_observations is not None and self.max_observations < 1:
+            raise EvaluationError(f"max_observations must be >= 1, got {self.max_observations}")
+        if self.dense_mugs < 0 or self.dense_step < 1:
+            raise EvaluationError(f"dense_mugs must be >= 0 and dense_step >= 1, got {self.dense_mugs} and "
+                                  f"{self.dense_step}")
+
+    def plausible_config(self, deltas: Sequence[float]) -> PlausibleConfig:
+        """The plausible-set parameters at ``deltas``."""
+        return PlausibleConfig(deltas=tuple(deltas), observation=self.observation,
+                               record_fraction=max(self.record_fraction, self.observation.outlier_fraction))
+
+
+@dataclass
+class ScoredSet:
+    """One loaded test set: its views, their plausible sets, and the observations to score (ascending)."""
+
+    views: list[EvalView]
+    sets: PlausibleSets
+    references: list[int]
+
+
+def dense_mug_views(views: Sequence[Any], count: int, step: int) -> list[int]:
+    """Every ``step``-th view of the first ``count`` mugs that have a handle (views of a mug are consecutive)."""
+    if count < 0 or step < 1:
+        raise EvaluationError(f"dense_mugs must be >= 0 and dense_step >= 1, got {count} and {step}")
+    mugs: list[str] = []
+    for view in views:
+        if view.meta.get("has_handle") and view.identity not in mugs:
+            mugs.append(view.identity)
+    chosen = set(mugs[:count])
+    out, seen = [], {}
+    for k, view in enumerate(views):
+        if view.identity in chosen:
+            if seen.setdefault(view.identity, 0) % step == 0:
+                out.append(k)
+            seen[view.identity] += 1
+    return out
+
+
+def load_test_sets(config: TestSetsConfig, deltas: Sequence[float], runner: TaskRunner,
+                   log: Callable[[str], None] = print) -> dict[str, ScoredSet]:
+    """Loads each test set of ``config`` and its plausible sets (cached, resumed or computed by ``runner``).
+
+    ``log`` gets one line per set (sizes, cache state, where the sets are stored) and one per set skipped.
+
+    Raises:
+        EvaluationError: none of the sets was found.
+    """
+    plausible = config.plausible_config(deltas)
+    out: dict[str, ScoredSet] = {}
+    for name in config.sets:
+        root = find_test_set(config.data, name)
+        if root is None:
+            log(f"{name}: no test set under {config.data} (skipped; build it with `{build_command(name)}`)")
+            continue
+        views, _ = load_test_set(root, progress=config.progress)
+        refs = None if config.max_observations is None or config.max_observations >= len(views) else \
+            evenly_spaced(len(views), config.max_observations)
+        if name in MUG_SETS and refs is not None and config.dense_mugs:
+            refs = sorted(set(refs) | set(dense_mug_views(views, config.dense_mugs, config.dense_step)))
+        cache = Path(config.cache_dir) if config.cache_dir else root / "plausible_cache"
+        t0 = time.perf_counter()
+        sets, path, hit = cached_plausible_sets(views, ShapeMeshes(), dataset_fingerprint(root), cache, plausible,
+                                                refs, runner=runner, progress=config.progress,
+                                                desc=f"plausible {name}", recompute=config.recompute)
+        s = sets.stats
+        state = "cached" if hit else f"computed in {time.perf_counter() - t0:.1f} s"
+        if not hit and s.get("resumed_references"):
+            state += f", {s['resumed_references']} references resumed from an interrupted run"
+        sizes = {d: float(np.mean(list(sets.sizes(d).values()))) for d in deltas}
+        where = s.get("executor") or f"{s['workers']} workers"  # caches written before Ray lack "executor"
+        log(f"{name}: {len(views)} observations, {len(sets.references)} references, {s['pairs']} pairs "
+            f"({state}; {s['pairs_per_second']:.0f} pairs/s, {where}, when computed); "
+            f"mean set size {', '.join(f'{d * 100:g} cm: {v:.1f}' for d, v in sizes.items())}; "
+            f"own ground truth plausible: {s['own_ground_truth_plausible_rate']} -> {path}")
+        out[name] = ScoredSet(views, sets, [int(i) for i in sets.references])
+    if not out:
+        raise EvaluationError(f"no test sets {','.join(config.sets)} found under {config.data}")
+    return out
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """One ``pssnet evaluate`` run.
+
+    Attributes:
+        test_sets: the observations to score and their plausible sets.
+        out: output directory.
+        samples: completions per observation (paper: 100).
+        delta: the paper's delta (m).
+        scaled_delta: the delta scaled to real-size objects (m); <= 0 (or equal to ``delta``) to skip.
+        seed: latent seed (observation ``i`` uses ``seed + i``).
+        plot_mugs: mugs in the coverage-vs-rotation plot.
+        ray: where the observations are scored.
+        gpus_per_task: GPUs each Ray task reserves (completers on a GPU take a whole one).
+    """
+
+    test_sets: TestSetsConfig
+    out: str = "results"
+    samples: int = 100
+    delta: float = PAPER_DELTA
+    scaled_delta: float = SCALED_DELTA
+    seed: int = 0
+    plot_mugs: int = 3
+    ray: RayConfig = RayConfig()
+    gpus_per_task: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.samples < 1:
+            raise EvaluationError(f"samples must be >= 1, got {self.samples}")
+
+    @property
+    def deltas(self) -> tuple[float, ...]:
+        """The deltas scored: ``delta``, then ``scaled_delta`` when positive and different."""
+        deltas = (self.delta,) + ((self.scaled_delta,) if self.scaled_delta and self.scaled_delta > 0 else ())
+        return deltas if len(set(deltas)) == len(deltas) else (self.delta,)
+
+
+@dataclass
+class EvaluationResult:
+    """What :func:`run_evaluation` measured: rows (see :func:`evaluate_set`), figure examples, timings."""
+
+    config: EvaluateConfig
+    methods: list[str]
+    test_sets: dict[str, ScoredSet]
+    rows: list[dict[str, Any]]
+    examples: list[KeptExample]
+    timings: dict[str, float]
+
+
+def _figure_examples(name: str, scored: ScoredSet) -> list[int]:
+    """One example per figure set: the middle occluded-handle mug, the middle narrow-slit observation."""
+    if name in MUG_SETS:
+        hidden = [i for i in scored.references if scored.views[i].meta.get("handle_visible") is False]
+        return hidden[len(hidden) // 2:][:1]
+    if name in NARROW_SETS:
+        return scored.references[len(scored.references) // 2:][:1]
+    return []
+
+
+def run_evaluation(config: EvaluateConfig, completers: Mapping[str, Completer]) -> EvaluationResult:
+    """Scores every completer on the test sets of ``config`` against their plausible sets (one Ray for all)."""
+    output = EvaluationOutput()
+    with TaskRunner(config.ray) as runner:
+        loaded = load_test_sets(config.test_sets, config.deltas, runner)
+        t0 = time.perf_counter()
+        for name, scored in loaded.items():
+            evaluate_set(name, scored.views, ShapeMeshes(), scored.sets, completers, config.deltas, config.samples,
+                         config.seed, scored.references, keep=_figure_examples(name, scored),
+                         progress=config.test_sets.progress, output=output, runner=runner,
+                         gpus_per_task=config.gpus_per_task)
+    timings = dict(output.timings, evaluate_seconds=time.perf_counter() - t0)
+    return EvaluationResult(config=config, methods=list(completers), test_sets=loaded, rows=output.rows,
+                            examples=output.examples, timings=timings)

@@ -14,18 +14,22 @@ handle is). Per view and method this gives:
 
 Why a handle-specific measure next to the generic pairwise distance: a model can be "diverse" by blurring
 the body, which says nothing about whether it proposes the hidden handle in different places.
+
+``pssnet handles`` (:func:`run_handles`) measures every view of the measurable mugs of a test set; its report is
+:func:`pssnet_core.evaluation.handles_report.handles_report`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pssnet_core.evaluation.experiment import Completer, sample_occupancy
 from pssnet_core.evaluation.metrics import chamfer_matrix
 from pssnet_core.evaluation.plausible import EvalView
 from pssnet_core.shapes import Shape
@@ -208,25 +212,106 @@ def stats_row(method: str, view: EvalView, stats: HandleStats) -> dict[str, Any]
     return row
 
 
-def plot_handle_samples(path: str | Path, ground_truth: np.ndarray, samples: dict[str, np.ndarray],
-                        azimuths: dict[str, np.ndarray], title: str, count: int = 8) -> Path:
-    """One row per method: the ground truth, then ``count`` samples with their handle azimuths."""
-    import matplotlib
+# --------------------------------------------------------------------------------------- the experiment
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    from pssnet_core.evaluation.report import draw_voxels, save_figure
+@dataclass(frozen=True)
+class HandlesConfig:
+    """One ``pssnet handles`` run.
 
-    cols = count + 1
-    fig = plt.figure(figsize=(1.9 * cols, 2.0 * len(samples) + 0.4))
-    for r, (method, grids) in enumerate(samples.items()):
-        ax = fig.add_subplot(len(samples), cols, r * cols + 1, projection="3d")
-        draw_voxels(ax, ground_truth, "ground truth", "tab:green")
-        for c in range(min(count, len(grids))):
-            az = azimuths[method][c]
-            label = "no handle" if not np.isfinite(az) else f"handle {az:+.0f} deg"
-            ax = fig.add_subplot(len(samples), cols, r * cols + 2 + c, projection="3d")
-            draw_voxels(ax, grids[c], f"{method} #{c}: {label}", "tab:blue")
-    fig.suptitle(title, fontsize=9)
-    return save_figure(fig, path, dpi=100)
+    Attributes:
+        data: the mugs test set, or a directory holding ``mugs`` or ``test/mugs``.
+        out: output directory.
+        samples: completions per view (>= 2, to measure a spread).
+        max_mugs: measure only the first K measurable mugs (None = all).
+        seed: latent seed (every view uses it).
+        progress: tqdm bar.
+    """
+
+    data: str
+    out: str = "results/handles"
+    samples: int = 20
+    max_mugs: int | None = None
+    seed: int = 0
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.samples < 2:
+            raise HandleMeasureError(f"samples must be >= 2 to measure a spread, got {self.samples}")
+
+
+@dataclass
+class HandleFigure:
+    """Samples of one view for a figure: each method's grids and their handle azimuths, and the truth."""
+
+    label: str
+    title: str
+    truth: np.ndarray
+    grids: dict[str, np.ndarray]
+    azimuths: dict[str, np.ndarray]
+
+
+@dataclass
+class HandlesResult:
+    """What :func:`run_handles` measured: one row per (view, method) (:func:`stats_row`), and the figures."""
+
+    config: HandlesConfig
+    root: Path
+    methods: list[str]
+    mugs: int
+    views: int
+    rows: list[dict[str, Any]]
+    figures: list[HandleFigure]
+
+
+def _closest(views: Sequence[EvalView], rotation: float) -> EvalView:
+    return min(views, key=lambda v: abs((float(v.meta.get("rotation_deg", 0.0)) - rotation + 180) % 360 - 180))
+
+
+def run_handles(config: HandlesConfig, completers: Mapping[str, Completer]) -> HandlesResult:
+    """Samples every view of the round, handled mugs of the test set with every completer and measures the
+    handles; then samples the figure views: the first measurable mug with its handle straight behind the body
+    (hidden) and seen side-on (visible)."""
+    from tqdm import tqdm
+
+    from pssnet_core.data.store import DatasetReader
+    from pssnet_core.evaluation.testsets import find_test_set, load_test_set
+
+    root = find_test_set(config.data, "mugs")
+    if root is None:
+        raise HandleMeasureError(f"no mugs test set under {config.data} (build it with "
+                                 "`pssnet dataset build --family mugs --split test`)")
+    views, _ = load_test_set(root, progress=config.progress)
+    by_mug: dict[str, list[EvalView]] = {}
+    for view in views:
+        by_mug.setdefault(view.identity, []).append(view)
+    # Square bodies and handle-less mugs have no handle azimuth: skipped.
+    geometries = handle_geometries(by_mug, config.max_mugs)
+    if not geometries:
+        raise HandleMeasureError(f"{root} holds no round mug with a handle")
+    chosen = [v for identity in geometries for v in by_mug[identity]]
+    rows = []
+    for view in tqdm(chosen, desc="handles", disable=not config.progress):
+        for method, completer in completers.items():
+            samples = sample_occupancy(completer, view, config.samples, config.seed)
+            rows.append(stats_row(method, view, handle_stats(samples, view, geometries[view.identity])))
+    first = by_mug[next(iter(geometries))]
+    reader = DatasetReader(root)
+    figures = []
+    for label, candidates, rotation in (
+            ("hidden", [v for v in first if not v.meta.get("handle_visible")], 0.0),
+            ("visible", [v for v in first if v.meta.get("handle_visible")], 90.0)):
+        if not candidates:
+            continue
+        view = _closest(candidates, rotation)
+        grids, azimuths = {}, {}
+        for method, completer in completers.items():
+            grids[method] = sample_occupancy(completer, view, 8, config.seed)
+            azimuths[method] = handle_azimuths(grids[method], view.grid_pose, view.object_pose,
+                                               geometries[view.identity])
+        figures.append(HandleFigure(
+            label=label, truth=reader.get(view.index, images=False)["occupancy"], grids=grids, azimuths=azimuths,
+            title=f"{view.identity}, rotation {view.meta.get('rotation_deg')} deg: handle {label} "
+                  f"(true handle azimuth 0 deg)"))
+    return HandlesResult(config=config, root=root, methods=list(completers), mugs=len(geometries),
+                         views=len(chosen), rows=rows, figures=figures)

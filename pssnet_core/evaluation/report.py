@@ -1,17 +1,21 @@
-"""Tables (markdown + CSV, in the shape of the paper's Table 1) and figures of an evaluation."""
+"""The report of ``pssnet evaluate``: tables (markdown + CSV, in the shape of the paper's Table 1) and figures."""
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pssnet_core.evaluation.evaluate import KeptExample
+from pssnet_core.evaluation.evaluate import EvaluationResult, KeptExample
+from pssnet_core.evaluation.experiment import Figure, Json, Markdown, Report, Table
+from pssnet_core.evaluation.figures import draw_voxels, save_figure
 from pssnet_core.evaluation.metrics import METRIC_NAMES
+from pssnet_core.evaluation.testsets import MUG_SETS
+from pssnet_core.spread import evenly_spaced
 
 
 def _hidden(row: dict[str, Any]) -> bool:
@@ -94,21 +98,6 @@ def markdown_table(summary: Sequence[dict[str, Any]], methods: Sequence[str], de
     return "\n".join(lines)
 
 
-def write_csv(path: str | Path, rows: Sequence[dict[str, Any]]) -> Path:
-    """Writes dict rows as CSV (columns: union of keys, first row's order first)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    keys: list[str] = []
-    for r in rows:
-        keys += [k for k in r if k not in keys]
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=keys)
-        writer.writeheader()
-        for r in rows:
-            writer.writerow(r)
-    return path
-
-
 def rotation_of(row: dict[str, Any]) -> float | None:
     """A mug view's rotation angle in degrees from its row, if recorded."""
     for key in ROTATION_KEYS:
@@ -127,8 +116,6 @@ def plot_coverage_vs_rotation(path: str | Path, rows: Sequence[dict[str, Any]], 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from pssnet_core.evaluation.testsets import MUG_SETS
 
     mug_rows = [r for r in rows if r["set"] in MUG_SETS and rotation_of(r) is not None]
     if not mug_rows:
@@ -162,46 +149,6 @@ def plot_coverage_vs_rotation(path: str | Path, rows: Sequence[dict[str, Any]], 
     return save_figure(fig, path, dpi=110)
 
 
-def _surface(grid: np.ndarray) -> np.ndarray:
-    """Indices of occupied voxels with at least one empty 6-neighbour (what a voxel picture shows)."""
-    padded = np.pad(grid, 1)
-    inner = padded[1:-1, 1:-1, 1:-1]
-    interior = inner.copy()
-    for axis in range(3):
-        for shift in (-1, 1):
-            interior &= np.roll(padded, shift, axis=axis)[1:-1, 1:-1, 1:-1]
-    return np.argwhere(grid & ~interior)
-
-
-def save_figure(fig: Any, path: str | Path, dpi: int = 100) -> Path:
-    """Lays out, writes (creating the folder) and closes a matplotlib figure; returns the path."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
-
-
-def draw_voxels(ax: Any, grid: np.ndarray, title: str, color: str) -> None:
-    pts = _surface(grid)
-    n = grid.shape[0]
-    if len(pts):
-        # grid x = viewing direction, z = up: show the camera's side on the left
-        ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=2, c=color, depthshade=True, linewidths=0)
-    ax.set_xlim(0, n)
-    ax.set_ylim(0, n)
-    ax.set_zlim(0, n)
-    ax.set_box_aspect((1, 1, 1))
-    ax.view_init(elev=20, azim=-60)
-    ax.set_xticks([])
-    ax.set_yticks([])
-    ax.set_zticks([])
-    ax.set_title(title, fontsize=7)
-
-
 def plot_samples_vs_plausible(path: str | Path, examples: Sequence[KeptExample], method: str,
                               max_samples: int = 5) -> Path | None:
     """For one method: per kept example, samples (top) above each one's nearest plausible shape (bottom)."""
@@ -217,7 +164,7 @@ def plot_samples_vs_plausible(path: str | Path, examples: Sequence[KeptExample],
     fig = plt.figure(figsize=(2.0 * cols, 2.1 * 2 * len(chosen)))
     for k, ex in enumerate(chosen):
         # Spread the samples shown over the set: the most diverse-looking choice without extra computation.
-        picks = np.linspace(0, len(ex.samples) - 1, min(max_samples, len(ex.samples))).round().astype(int)
+        picks = evenly_spaced(len(ex.samples), max_samples)
         ax = fig.add_subplot(2 * len(chosen), cols, 2 * k * cols + 1, projection="3d")
         draw_voxels(ax, ex.plausible[0], f"{ex.set_name} #{ex.index}\nground truth", "tab:green")
         ax = fig.add_subplot(2 * len(chosen), cols, (2 * k + 1) * cols + 1, projection="3d")
@@ -232,3 +179,39 @@ def plot_samples_vs_plausible(path: str | Path, examples: Sequence[KeptExample],
             draw_voxels(ax, ex.plausible[nearest],
                          f"nearest plausible #{nearest}\n{ex.distances[s, nearest] * 1000:.1f} mm", "tab:orange")
     return save_figure(fig, path, dpi=100)
+
+
+def evaluation_report(result: EvaluationResult, command: str = "") -> Report:
+    """``results.md``, ``results.csv`` (means per delta, subset and method), ``per_observation.csv``,
+    ``coverage_vs_rotation.png``, ``samples_<method>.png`` and ``evaluation_info.json`` (deltas, methods,
+    timings, plausible-set statistics). ``command`` is the command line shown in the Markdown."""
+    config, methods, rows = result.config, result.methods, result.rows
+    deltas = config.deltas
+    summary = summarise(rows, methods, deltas)
+    notes = {config.delta: "the paper's value"}
+    if len(deltas) > 1:
+        notes[deltas[1]] = "scaled to real-size objects, see DESIGN.md"
+    observation = config.test_sets.observation
+    header = ["# Plausible-diversity evaluation", "",
+              "Chamfer distances between voxel-centre clouds, millimetres (lower is better). best acc = M_A, "
+              "coverage = M_C, avg plausibility = M_P, plausible diversity = M_PD = M_C + M_P.", "",
+              f"Command: `pssnet evaluate {command}`", "",
+              f"Samples per observation: {config.samples}; outlier allowance: fraction {observation.outlier_fraction}, "
+              f"count {observation.outlier_count}; sets: "
+              f"{', '.join(f'{k} ({len(v.references)} observations)' for k, v in result.test_sets.items())}.",
+              ""]
+    report: Report = {
+        "markdown": Markdown("results.md", "\n".join(header) + markdown_table(summary, methods, deltas, notes)),
+        "csv": Table("results.csv", summary),
+        "per_observation": Table("per_observation.csv", rows),
+        "coverage_plot": Figure("coverage_vs_rotation.png", partial(
+            plot_coverage_vs_rotation, rows=rows, methods=methods, deltas=deltas, num_mugs=config.plot_mugs)),
+    }
+    examples = [e for e in result.examples if abs(e.delta - deltas[-1]) < 1e-12]
+    for method in methods:
+        report[f"samples_{method}"] = Figure(f"samples_{method}.png", partial(
+            plot_samples_vs_plausible, examples=examples, method=method))
+    report["info"] = Json("evaluation_info.json", {
+        "deltas": deltas, "methods": methods, "samples": config.samples, "timings": result.timings,
+        "plausible_stats": {k: v.sets.stats for k, v in result.test_sets.items()}}, indent=2, strict=False)
+    return report

@@ -64,14 +64,6 @@ def _first(record: dict[str, Any], keys: Sequence[str], what: str, index: int) -
     raise PlausibleSetError(f"sample {index} has no {what} (looked for {list(keys)})")
 
 
-def evenly_spaced_views(count: int, limit: int) -> list[int]:
-    """Indices of ``limit`` views spread evenly over ``count`` (all when ``limit >= count``): the views that
-    ``--max-observations`` / ``--max-views`` score, so that subsets of different commands coincide."""
-    if limit >= count:
-        return list(range(count))
-    return sorted(set(np.linspace(0, count - 1, limit).round().astype(int).tolist()))
-
-
 def find_test_set(data: str | Path, name: str) -> Path | None:
     """The directory of test set ``name`` under ``data`` (``data/name``, ``data/test/name``, or ``data`` itself)."""
     data = Path(data)

@@ -113,6 +113,8 @@ class CompletionModel(nn.Module):
     training_only_prefixes: ClassVar[tuple[str, ...]] = ()
     #: whether :meth:`sample` runs the fused CPU inference path of :mod:`pssnet_core.models.networks`.
     fuses_sampling: ClassVar[bool] = False
+    #: leading latent dims that encode the object's box (PSSNet sets it from its config; 0 = no box part).
+    box_dim: int = 0
 
     def __init__(self, config: ModelConfig) -> None:
         super().__init__()
@@ -126,6 +128,11 @@ class CompletionModel(nn.Module):
     @property
     def device(self) -> torch.device:
         return next(self.parameters()).device
+
+    @property
+    def has_box_latent(self) -> bool:
+        """Whether the model has a box part (``box_dim`` > 0), the dims a box temperature widens."""
+        return self.box_dim > 0
 
     def check_input(self, x: torch.Tensor) -> torch.Tensor:
         """Validates a (B,2,N,N,N) network input and moves it to the model's device and memory format."""

@@ -215,7 +215,7 @@ def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
     kept["exported_from"] = str(src)
     if box_temperature is not None:
         try:
-            kept["box_temperature"] = check_box_temperature(box_temperature, getattr(model, "box_dim", 0) > 0)
+            kept["box_temperature"] = check_box_temperature(box_temperature, model.has_box_latent)
         except ModelInputError as error:
             raise CheckpointError(str(error)) from error
     return save_checkpoint(dst, model, config, kept, half=half, inference_only=inference_only)

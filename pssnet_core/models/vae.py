@@ -113,12 +113,10 @@ class VAE(CompletionModel):
         mu, _ = self.encode(self.check_input(x))
         return self.decode(mu)
 
-    box_dim = 0  # leading latent dims that encode the box (PSSNet)
-
     def sample(self, x: torch.Tensor, num_samples: int, generator: torch.Generator | None = None,
                box_temperature: float = 1.0) -> torch.Tensor:
         check_num_samples(num_samples)
-        t = check_box_temperature(box_temperature, self.box_dim > 0)
+        t = check_box_temperature(box_temperature, self.has_box_latent)
         # One input's encoder and latent draws are ~60 MMAC of small ops: on one thread none of them waits for a
         # second thread to be scheduled, which on a busy 2-core machine costs more than the parallel GEMMs save
         # (encoder 9 vs 60 ms median, 3.9 vs 5.0 ms best; BENCHMARKS.md "Inference").

@@ -26,6 +26,7 @@ import torch
 
 from pssnet_core.data.store import GRID_KEYS, DatasetReader
 from pssnet_core.models.base import CompletionModel, StepContext
+from pssnet_core.spread import evenly_spaced
 from pssnet_core.training.trainer import batch_to_tensors, reconstruction_scores
 
 
@@ -63,9 +64,8 @@ def posterior_stats(model: CompletionModel, reader: DatasetReader, label: str, c
     if not hasattr(model, "encode"):
         raise ValueError(f"{type(model).__name__} has no latent posterior to measure")
     total = len(reader)
-    count = total if max_views is None else min(total, max_views)
-    indices = np.unique(np.linspace(0, total - 1, count).round().astype(np.int64))
-    box_dim = int(getattr(model, "box_dim", 0))
+    indices = np.asarray(evenly_spaced(total, max_views), dtype=np.int64)
+    box_dim = model.box_dim
     bces, ious, box_sigmas, rest_sigmas, index_order = [], [], [], [], []
     model.eval()
     with torch.inference_mode():
