@@ -190,11 +190,18 @@ def transitions_mid_work(args: argparse.Namespace, domain: int) -> list[dict]:
                     assert ros.set_parameters(continuous=True)[0].successful
                 for transition in chaos.TRANSITION_SEQUENCES:
                     for delay in delays:
-                        report, node = chaos.transition_mid_work(
-                            ros, node, transition, work,
-                            lambda c=continuous: start_node(domain, args.threads, args.model, continuous=c,
-                                                            num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0),
-                            delay_s=float(delay), timeout=120.0)
+                        try:
+                            report, node = chaos.transition_mid_work(
+                                ros, node, transition, work,
+                                lambda c=continuous: start_node(domain, args.threads, args.model, continuous=c,
+                                                                num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0),
+                                delay_s=float(delay), timeout=120.0)
+                        except Exception:
+                            if node.running():  # a hung node prints its threads' stacks on SIGUSR1
+                                node.proc.send_signal(signal.SIGUSR1)
+                                time.sleep(2.0)
+                            print("[chaos] (e) the node's last output:\n" + "\n".join(node.lines()[-200:]))
+                            raise
                         reports.append(asdict(report))
                         if not (report.node_alive and report.restored):
                             print(f"[chaos] (e) FAILED: {report}", flush=True)

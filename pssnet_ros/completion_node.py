@@ -68,6 +68,7 @@ from pssnet_ros.completion_io import (
     stamp_ns,
 )
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
+from pssnet_ros.heap import trim_heap
 from pssnet_ros.newest_slot import NewestSlot
 from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, check_values, markdown_table, pipeline_config
 from pssnet_ros.processes import clean_stale_shm
@@ -132,6 +133,7 @@ class CompletionNode(LifecycleNode):
         self.pipeline: CompletionPipeline | None = None  # loaded on configure, dropped on cleanup
         self._configure_error = ""
         self._up_disagreement_deg = math.nan  # of the last input the pipeline checked (NaN: not checked)
+        self._worked_since_trim = False  # a call or a topic set ended since the heap was last trimmed
         self._active = False
         # Set when the node leaves the active state: calls and topic sets in flight stop at their next step.
         self._stopping = threading.Event()
@@ -378,6 +380,7 @@ class CompletionNode(LifecycleNode):
 
     def _finish(self, outcome: str) -> int:
         """Counts the outcome of the set in progress and frees the slot in one step (stats stay consistent)."""
+        self._worked_since_trim = True
         with self._lock:
             self._counters[outcome] += 1
             self._slot.done()
@@ -465,6 +468,13 @@ class CompletionNode(LifecycleNode):
 
     def _on_sample_completions(self, request: SampleCompletions.Request,
                                response: SampleCompletions.Response) -> SampleCompletions.Response:
+        try:
+            return self._answer(request, response)
+        finally:
+            self._worked_since_trim = True
+
+    def _answer(self, request: SampleCompletions.Request,
+                response: SampleCompletions.Response) -> SampleCompletions.Response:
         self._count("service_calls")
         t0 = time.perf_counter()
         if not self._active:
@@ -515,6 +525,9 @@ class CompletionNode(LifecycleNode):
         return response
 
     def _publish_diagnostics(self) -> None:
+        if self._worked_since_trim:  # here, at most once a second and never on a call's critical path
+            self._worked_since_trim = False
+            trim_heap()
         pipeline = self.pipeline
         model = {} if pipeline is None else {
             "model": f"{pipeline.completer.model_name} {pipeline.completer.grid_size}^3",
