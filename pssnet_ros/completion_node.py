@@ -43,6 +43,7 @@ from pssnet_interfaces.msg import GraspCandidates
 from pssnet_interfaces.srv import SampleCompletions
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -81,6 +82,8 @@ WARN_THROTTLE_S = 2.0
 DIAGNOSTICS_PERIOD_S = 1.0
 #: Shortest delay the continuous-mode timer is armed for (it fires when the pending set may start, else sleeps).
 CONTINUOUS_MIN_DELAY_NS = 1_000_000
+#: Longest a transition waits for the work in flight (a network pass of max_num_samples x 10 proposals on a slow CPU).
+TRANSITION_WAIT_LIMIT_S = 300.0
 #: What a call stopped by a lifecycle transition answers.
 CANCELLED_MESSAGE = ("cancelled: the node left the active state during the call (deactivate, cleanup or shutdown); "
                      "call again once it is active")
@@ -139,7 +142,6 @@ class CompletionNode(LifecycleNode):
         self._stopping = threading.Event()
         self._subscriptions: list[Subscription] = []  # the inputs, while active
         self._continuous_timer: Timer | None = None  # while active with continuous on
-        self._outputs: dict[str, Any] = {}  # lifecycle publishers: created on configure, enabled while active
         try:
             self._values = self._declare()
         except StartupError:
@@ -162,6 +164,13 @@ class CompletionNode(LifecycleNode):
             SampleCompletions, "~/sample_completions", self._on_sample_completions, qos_profile=SERVICE_QOS,
             callback_group=MutuallyExclusiveCallbackGroup())
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # Entities with QoS event handlers (publishers, subscriptions with rclpy's default handlers) must not be
+        # destroyed while the executor runs: rclpy 7.1's MultiThreadedExecutor adds event handlers to its wait set
+        # without holding them, and one destroyed meanwhile raised InvalidHandle out of spin() (1 cleanup in 55).
+        # So the lifecycle publishers live as long as the node (enabled only while active), and the inputs,
+        # created on activate and destroyed on deactivate, go without event handlers (below).
+        self._outputs = {name: self.create_lifecycle_publisher(msg_type, f"~/{name}", OUTPUT_QOS)
+                         for name, msg_type in OUTPUT_TYPES.items()}
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, callback_group=self._topics_group)
         if self._values["autostart"]:
             self._start()
@@ -211,15 +220,16 @@ class CompletionNode(LifecycleNode):
             self.get_logger().error(f"configure failed, still unconfigured: {error}")
             return FAILURE
         self._configure_error = ""
-        self._outputs = {name: self.create_lifecycle_publisher(msg_type, f"~/{name}", OUTPUT_QOS)
-                         for name, msg_type in OUTPUT_TYPES.items()}
         return SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._stopping.clear()
+        # No event handlers (see __init__): rclpy's defaults only warn of incompatible QoS, which a best-effort
+        # volatile subscription cannot meet, and of a publisher of another type on the topic.
+        no_handlers = SubscriptionEventCallbacks(use_default_callbacks=False)
         self._subscriptions = [self.create_subscription(
             msg_type, stream, lambda m, stream=stream: self._on_input(stream, m), INPUT_QOS,
-            callback_group=self._topics_group)
+            callback_group=self._topics_group, event_callbacks=no_handlers)
             for stream, msg_type in (("depth", Image), ("mask", Image), ("camera_info", CameraInfo))]
         with self._lock:
             self._active = True
@@ -271,10 +281,16 @@ class CompletionNode(LifecycleNode):
         waiting_since = time.monotonic()
         told = False
         while not group.beginning_execution(entity):  # a call or a topic set is running or sending its answer
-            if not told and time.monotonic() - waiting_since > 1.0:
+            waited = time.monotonic() - waiting_since
+            if not told and waited > 1.0:
                 told = True
                 self.get_logger().info("waiting for the work in flight to stop at its next step (a network pass "
                                        "cannot be interrupted)")
+            if waited > TRANSITION_WAIT_LIMIT_S:  # a stuck callback must not hold the transition for ever
+                self.get_logger().error(f"the work in flight did not stop within {TRANSITION_WAIT_LIMIT_S:.0f} s; "
+                                        f"going on without it")
+                action(entity)
+                return
             time.sleep(0.005)
         try:
             action(entity)
@@ -311,9 +327,6 @@ class CompletionNode(LifecycleNode):
             timer.reset()
 
     def _release(self) -> None:
-        for publisher in self._outputs.values():
-            self.destroy_lifecycle_publisher(publisher)
-        self._outputs = {}
         with self._lock:
             self._latest = None
         self.pipeline = None
@@ -417,12 +430,9 @@ class CompletionNode(LifecycleNode):
         self._finish("sets_processed")
 
     def _publish(self, result: PipelineResult, header: Header) -> None:
-        outputs = self._outputs
-        if not outputs:  # cleaned up while this set was being completed
-            return
         messages = output_messages(result, header)
         for name in OUTPUT_TOPICS:
-            outputs[name].publish(getattr(messages, name))
+            self._outputs[name].publish(getattr(messages, name))
 
     # ----------------------------------------------------------------------------------------- service
     def _run(self, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo, num_samples: int,

@@ -119,10 +119,11 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
     response = ros.call(service, make_request(scene, stamped_header(5)), timeout=120)
     assert response.success, response.message
     assert len(response.completions) == 3
-    # The call is counted when it starts and timed when it ends: a status published in between shows the one but
-    # not the other (the checked sampler's call spans a 1 Hz diagnostics tick on a busy machine).
+    # Two calls so far (the one refused while inactive counts). A call is counted when it starts and timed when it
+    # ends: a status published in between shows the one but not the other (the checked sampler's call spans a
+    # 1 Hz diagnostics tick on a busy machine).
     latency = "latency p50 (ms, last 10 s)"
-    active = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "1"
+    active = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "2"
                         and float(d[latency]) > 0 and d, 30, "diagnostics counting and timing the call")
     assert active["level"] == DiagnosticStatus.OK
     assert active["model"] == "pssnet 32^3" and active["device"] == "cpu"
@@ -132,7 +133,7 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
     mark = len(node.lines())
     response = ros.call(service, make_request(scene, stamped_header(6)), timeout=120)
     assert response.success and "tilted 30 deg from up_vector" in response.message, response.message
-    warned = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "2"
+    warned = wait_until(lambda: (d := diagnostics.wait_for_state("active"))["service calls"] == "3"
                         and d["level"] == DiagnosticStatus.WARN and d, 30, "a WARN status for the wrong up_vector")
     assert "tilted 30 deg from up_vector" in warned["message"]
     assert float(warned["up_vector vs support plane (deg)"]) == pytest.approx(30.0, abs=1.0)
