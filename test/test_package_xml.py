@@ -171,3 +171,37 @@ def test_what_the_node_loads_is_an_exec_depend():
     assert needed - exec_keys == set(), "the node loads these, but they are not exec_depend"
     assert exec_keys - needed == set(), "exec_depend, but neither the node nor `pssnet bag` loads it: test_depend?"
     assert not loaded & NO_KEY, f"the node loads modules without a rosdep key: {loaded & NO_KEY}"
+
+
+# ------------------------------------------------------------------------- requirements-runtime.txt
+#: rosdep key -> the PyPI distribution requirements-runtime.txt installs for it
+PIP_OF_KEY = {"python3-numpy": "numpy", "python3-scipy": "scipy", "python3-yaml": "pyyaml",
+              "python3-opencv": "opencv-python-headless", "python3-tqdm": "tqdm", "python3-torch": "torch",
+              "python3-open3d-pip": "open3d-cpu", "python3-rosbags-pip": "rosbags"}
+#: development, test, training and evaluation packages of requirements.txt: never on the robot
+NOT_RUNTIME = ("ros-jazzy-", "colcon", "ruff", "pytest", "hypothesis", "ray", "mujoco", "coacd", "manifold3d",
+               "trimesh", "matplotlib", "scikit-image", "setuptools")
+
+
+def pins(path: Path) -> dict[str, str]:
+    """Distribution name (lower case, extras dropped) -> the rest of the line, e.g. '==1.26.4'."""
+    result = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            match = re.match(r"([A-Za-z0-9_.-]+)(\[[^]]*\])?\s*(.*)", line)
+            result[match.group(1).lower()] = match.group(3)
+    return result
+
+
+def test_runtime_requirements_fit_an_apt_jazzy_robot():
+    runtime, development = pins(ROOT / "requirements-runtime.txt"), pins(ROOT / "requirements.txt")
+    assert runtime["numpy"].startswith("==1.26."), "Jazzy's message packages are built against numpy 1.x"
+    assert not [name for name in runtime if name.startswith(NOT_RUNTIME)], "a ROS wheel or a development package"
+    exec_keys = {k for k in dependencies("exec_depend") if k in ROSDISTRO["rosdep_keys"]}
+    assert set(PIP_OF_KEY) == exec_keys, "PIP_OF_KEY must name the pip package of every Python exec_depend"
+    assert set(runtime) == set(PIP_OF_KEY.values()), "requirements-runtime.txt is the exec_depends, by pip name"
+    for name, spec in runtime.items():
+        assert spec.startswith("=="), f"{name} is not pinned"
+        if name != "numpy":
+            assert development.get(name) == spec, f"{name}{spec}, but requirements.txt has {development.get(name)}"
