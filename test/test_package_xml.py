@@ -173,6 +173,13 @@ def test_what_the_node_loads_is_an_exec_depend():
     assert not loaded & NO_KEY, f"the node loads modules without a rosdep key: {loaded & NO_KEY}"
 
 
+def test_license_file_matches_package_xml():
+    assert ET.parse(ROOT / "package.xml").getroot().findtext("license") == "BSD-3-Clause"
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("BSD 3-Clause License\n") and "Copyright (c) 2026, PSSNet-ROS contributors" in text
+    assert "Neither the name of the copyright holder nor the names of its" in text
+
+
 # ------------------------------------------------------------------------- requirements-runtime.txt
 #: rosdep key -> the PyPI distribution requirements-runtime.txt installs for it
 PIP_OF_KEY = {"python3-numpy": "numpy", "python3-scipy": "scipy", "python3-yaml": "pyyaml",
