@@ -174,7 +174,9 @@ def test_what_the_node_loads_is_an_exec_depend():
 
 
 def test_license_file_matches_package_xml():
-    assert ET.parse(ROOT / "package.xml").getroot().findtext("license") == "BSD-3-Clause"
+    for path in PACKAGE_XMLS:  # each package carries its license file
+        assert ET.parse(path).getroot().findtext("license") == "BSD-3-Clause"
+        assert (path.parent / "LICENSE").read_text() == (ROOT / "LICENSE").read_text()
     text = (ROOT / "LICENSE").read_text()
     assert text.startswith("BSD 3-Clause License\n") and "Copyright (c) 2026, PSSNet-ROS contributors" in text
     assert "Neither the name of the copyright holder nor the names of its" in text
