@@ -7,7 +7,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export FASTRTPS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_profile.xml
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup demo test test-slow lint colcon clean datasets train-all results results-shipped oof-data oof-ambiguity
+.PHONY: setup demo test test-slow test-py312 lint colcon clean datasets train-all results results-shipped oof-data oof-ambiguity
 
 setup:
 	@bash scripts/setup.sh
@@ -24,6 +24,11 @@ test: lint
 
 test-slow: setup
 	$(VENV)/bin/pytest -q -m slow
+
+# The ROS-free tests on Python 3.12 with numpy 1.26 (an apt ROS 2 Jazzy robot's Python) in .venv312, built from
+# requirements-runtime.txt and the test packages; not part of `make test` (first run: ~6 GB of packages).
+test-py312:
+	bash scripts/test_py312.sh
 
 # Builds both packages with colcon, as on a regular ROS 2 workspace (install/ appears at the root).
 colcon: setup

@@ -94,7 +94,8 @@ class CameraLimits:
         max_skew_shift_px: the skew K[0,1], which the pinhole model here ignores, may shift no pixel further.
         matrix_tolerance: how far the fixed entries of K and P (zeros, the 1) and R's orthonormality may be off.
         projection_tolerance: relative difference allowed between P's and K's focal lengths and principal
-            points when the image is not rectified (no distortion and R = identity), where they must agree.
+            points when the camera needs no rectification (no distortion and R = identity), where they must
+            agree.
     """
 
     min_fov_deg: float = 1.0
@@ -134,10 +135,31 @@ def check_intrinsics(intrinsics: CameraIntrinsics, limits: CameraLimits | None =
                                    f"{side} image")
 
 
+def check_skew(matrix: np.ndarray, intrinsics: CameraIntrinsics, limits: CameraLimits, name: str = "K") -> None:
+    """Raises ObservationError when the skew ``matrix[0, 1]``, which the pinhole model here drops, shears the
+    image by more than ``limits.max_skew_shift_px``."""
+    skew = float(matrix[0, 1])
+    # Ignoring the skew moves a pixel in row v by skew * (v - cy) / fy: bound that over the image.
+    rows = max(intrinsics.cy, intrinsics.height - intrinsics.cy)
+    max_skew = limits.max_skew_shift_px * intrinsics.fy / rows
+    if not abs(skew) <= max_skew:
+        shift = abs(skew) * rows / intrinsics.fy
+        raise ObservationError(f"{name} skew {name}[0,1] = {skew:g} shifts pixels by up to {shift:.3g} px, which a "
+                               f"pinhole model without skew ignores; |skew| must be at most {max_skew:.3g} "
+                               f"({limits.max_skew_shift_px:g} px)")
+
+
 def check_camera_model(width: int, height: int, k: np.ndarray | Sequence[float], d: np.ndarray | Sequence[float] = (),
                        r: np.ndarray | Sequence[float] = (), p: np.ndarray | Sequence[float] = (),
                        limits: CameraLimits | None = None) -> CameraIntrinsics:
     """Pinhole intrinsics from a full calibration (as in sensor_msgs/CameraInfo), refusing one no camera has.
+
+    sensor_msgs/CameraInfo: K is the camera matrix of the raw (distorted) image, P's left 3x3 that of the
+    rectified image, and one CameraInfo accompanies both. The pinhole model here has no distortion, so it
+    describes the rectified image (image_rect, what depth_image_proc takes), whose pixels image_geometry's
+    PinholeCameraModel maps with P: the intrinsics are P's whenever P is given. Without distortion and
+    rectification (D zero, R identity) the raw image is its own rectified image and P must equal K; a raw image
+    of a distorted camera fits neither matrix and has to be rectified first (image_proc).
 
     Args:
         width: image width (pixels).
@@ -146,12 +168,13 @@ def check_camera_model(width: int, height: int, k: np.ndarray | Sequence[float],
         d: distortion coefficients (empty or all zero: none).
         r: row-major 3x3 rectification rotation; empty or all zero: not given.
         p: row-major 3x4 projection matrix [[fx', s', cx', Tx], [0, fy', cy', Ty], [0, 0, 1, 0]]; empty or all
-            zero: not given. Without distortion and rotation the image is its own rectified image, so P's
-            intrinsics must then equal K's.
+            zero: not given (then K's intrinsics are used). Tx and Ty (a stereo pair's second camera) place that
+            camera in the first one's frame; the points here stay in the image's own frame, as in
+            image_geometry's projectPixelTo3dRay.
         limits: what real cameras have (default :class:`CameraLimits`).
 
     Returns:
-        The intrinsics of K (the skew, checked to be negligible, is dropped).
+        The intrinsics of P when it is given, else of K (the skew, checked to be negligible, is dropped).
 
     Raises:
         ObservationError: the message names the matrix entry that is wrong.
@@ -165,15 +188,7 @@ def check_camera_model(width: int, height: int, k: np.ndarray | Sequence[float],
     if not np.all(np.isfinite(fixed)) or np.abs(fixed).max() > tol:
         raise ObservationError(f"K must have the form [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got rows 2-3 "
                                f"{k[1].tolist()} and {k[2].tolist()}")
-    skew = float(k[0, 1])
-    # Ignoring the skew moves a pixel in row v by skew * (v - cy) / fy: bound that over the image.
-    rows = max(intrinsics.cy, height - intrinsics.cy)
-    max_skew = limits.max_skew_shift_px * intrinsics.fy / rows
-    if not abs(skew) <= max_skew:
-        shift = abs(skew) * rows / intrinsics.fy
-        raise ObservationError(f"K skew K[0,1] = {skew:g} shifts pixels by up to {shift:.3g} px, which a pinhole "
-                               f"model without skew ignores; |skew| must be at most {max_skew:.3g} "
-                               f"({limits.max_skew_shift_px:g} px)")
+    check_skew(k, intrinsics, limits)
     rotation = np.asarray(r, dtype=np.float64).reshape(-1)
     rotated = False
     if rotation.size and np.any(rotation):
@@ -186,28 +201,30 @@ def check_camera_model(width: int, height: int, k: np.ndarray | Sequence[float],
                                    f"{np.linalg.det(rotation):.3g}): {rotation.round(6).tolist()}")
         rotated = float(np.abs(rotation - np.eye(3)).max()) > tol
     projection = np.asarray(p, dtype=np.float64).reshape(-1)
-    if projection.size and np.any(projection):
-        if projection.size != 12 or not np.all(np.isfinite(projection)):
-            raise ObservationError(f"P must be 12 finite numbers, got {projection.tolist()}")
-        projection = projection.reshape(3, 4)
-        fixed = np.array([projection[1, 0], projection[2, 0], projection[2, 1], projection[2, 2] - 1.0,
-                          projection[2, 3]])
-        if np.abs(fixed).max() > tol:
-            raise ObservationError(f"P must have the form [[fx', s', cx', Tx], [0, fy', cy', Ty], [0, 0, 1, 0]], "
-                                   f"got rows 2-3 {projection[1].tolist()} and {projection[2].tolist()}")
-        rectified = CameraIntrinsics.from_k(projection[:, :3], width, height)
-        check_intrinsics(rectified, limits, matrix="P")
-        distortion = np.asarray(d, dtype=np.float64).reshape(-1)
-        if not rotated and not np.any(distortion):
-            rel = limits.projection_tolerance
-            for name, of_p, of_k, scale in (("fx", rectified.fx, intrinsics.fx, intrinsics.fx),
-                                            ("fy", rectified.fy, intrinsics.fy, intrinsics.fy),
-                                            ("cx", rectified.cx, intrinsics.cx, width),
-                                            ("cy", rectified.cy, intrinsics.cy, height)):
-                if abs(of_p - of_k) > rel * scale:
-                    raise ObservationError(f"P {name} = {of_p:g} but K {name} = {of_k:g}: without distortion and "
-                                           "rectification (D zero, R identity) the two must agree")
-    return intrinsics
+    if not (projection.size and np.any(projection)):
+        return intrinsics
+    if projection.size != 12 or not np.all(np.isfinite(projection)):
+        raise ObservationError(f"P must be 12 finite numbers, got {projection.tolist()}")
+    projection = projection.reshape(3, 4)
+    fixed = np.array([projection[1, 0], projection[2, 0], projection[2, 1], projection[2, 2] - 1.0,
+                      projection[2, 3]])
+    if np.abs(fixed).max() > tol:
+        raise ObservationError(f"P must have the form [[fx', s', cx', Tx], [0, fy', cy', Ty], [0, 0, 1, 0]], "
+                               f"got rows 2-3 {projection[1].tolist()} and {projection[2].tolist()}")
+    rectified = CameraIntrinsics.from_k(projection[:, :3], width, height)
+    check_intrinsics(rectified, limits, matrix="P")
+    check_skew(projection, rectified, limits, name="P")
+    distortion = np.asarray(d, dtype=np.float64).reshape(-1)
+    if not rotated and not np.any(distortion):
+        rel = limits.projection_tolerance
+        for name, of_p, of_k, scale in (("fx", rectified.fx, intrinsics.fx, intrinsics.fx),
+                                        ("fy", rectified.fy, intrinsics.fy, intrinsics.fy),
+                                        ("cx", rectified.cx, intrinsics.cx, width),
+                                        ("cy", rectified.cy, intrinsics.cy, height)):
+            if abs(of_p - of_k) > rel * scale:
+                raise ObservationError(f"P {name} = {of_p:g} but K {name} = {of_k:g}: without distortion and "
+                                       "rectification (D zero, R identity) the two must agree")
+    return rectified
 
 
 def validate_depth_and_mask(depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics) -> None:

@@ -11,6 +11,28 @@ from __future__ import annotations
 
 import numpy as np
 
+_M1, _M2, _M4 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333), np.uint64(0x0F0F0F0F0F0F0F0F)
+_ONES = np.uint64(0x0101010101010101)
+
+
+def row_bit_counts_portable(words: np.ndarray) -> np.ndarray:
+    """Set bits of each row of (G, W) uint64 words, as (G,) int64, with shifts and masks that every numpy version
+    has (the usual parallel popcount: 2-, 4-, then 8-bit sums, added up by one wrapping multiply)."""
+    x = np.asarray(words, dtype=np.uint64)
+    x = x - ((x >> np.uint64(1)) & _M1)
+    x = (x & _M2) + ((x >> np.uint64(2)) & _M2)
+    x = (x + (x >> np.uint64(4))) & _M4
+    return ((x * _ONES) >> np.uint64(56)).sum(axis=1, dtype=np.int64)
+
+
+def row_bit_counts(words: np.ndarray) -> np.ndarray:
+    """Set bits of each row of (G, W) uint64 words, as (G,) int64: ``np.bitwise_count`` where numpy has it (2.0
+    and newer), else :func:`row_bit_counts_portable` (numpy 1.26, as on Ubuntu 24.04: ~1 ms for 200 grids of
+    32^3, about 3x longer)."""
+    if hasattr(np, "bitwise_count"):
+        return np.bitwise_count(words).sum(axis=1, dtype=np.int64)
+    return row_bit_counts_portable(words)
+
 
 def evenly_spaced(count: int, limit: int | None) -> list[int]:
     """Indices of ``limit`` items spread evenly over ``count``, ascending (all when ``limit`` is None or ``>= count``).
@@ -37,7 +59,7 @@ class BitRows:
 
     def __init__(self, words: np.ndarray) -> None:
         self.words = words
-        self.sizes = np.bitwise_count(words).sum(axis=1, dtype=np.int64)
+        self.sizes = row_bit_counts(words)
 
     @classmethod
     def pack(cls, occupancy: np.ndarray) -> BitRows:
@@ -54,11 +76,11 @@ class BitRows:
 
     def count_within(self, mask: np.ndarray) -> np.ndarray:
         """Occupied voxels of each grid inside ``mask`` (one grid's shape, or flat)."""
-        return np.bitwise_count(self.words & BitRows.pack(mask[None]).words[0]).sum(axis=1, dtype=np.int64)
+        return row_bit_counts(self.words & BitRows.pack(mask[None]).words[0])
 
     def jaccard_to(self, index: int) -> np.ndarray:
         """1 - IoU of every grid to grid ``index`` (two empty grids: distance 0)."""
-        inter = np.bitwise_count(self.words & self.words[index]).sum(axis=1, dtype=np.int64)
+        inter = row_bit_counts(self.words & self.words[index])
         union = self.sizes + self.sizes[index] - inter
         return np.where(union > 0, 1.0 - inter / np.maximum(union, 1), 0.0)
 

@@ -22,7 +22,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 from pssnet_interfaces.srv import SampleCompletions
@@ -34,7 +34,6 @@ from rosbags.typesys.store import Typestore
 from sensor_msgs.msg import CameraInfo, Image
 from tqdm import tqdm
 
-from pssnet_core.data.scenes import RenderedView
 from pssnet_core.pipeline import CompletionPipeline
 from pssnet_ros.completion_io import (
     OUTPUT_TOPICS,
@@ -49,6 +48,9 @@ from pssnet_ros.completion_io import (
 from pssnet_ros.params import check_values, defaults
 from pssnet_ros.sync import StampSynchronizer
 from pssnet_ros.synthetic_camera import view_messages
+
+if TYPE_CHECKING:  # write_demo_bag's view; the scenes need the shape libraries, `pssnet bag` does not
+    from pssnet_core.data.scenes import RenderedView
 
 GRASP_CANDIDATES_TYPE = "pssnet_interfaces/msg/GraspCandidates"
 #: message type each input stream must have

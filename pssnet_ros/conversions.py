@@ -203,10 +203,13 @@ def numpy_to_image(array: np.ndarray, encoding: str, header: Header | None = Non
 
 
 def camera_info_to_intrinsics(msg: CameraInfo) -> CameraIntrinsics:
-    """CameraInfo -> pinhole intrinsics from its K matrix, refusing calibrations no real camera has.
+    """CameraInfo -> pinhole intrinsics of the rectified image, refusing calibrations no real camera has.
 
-    The checks (field of view, principal point, skew, R and P consistent with K) are the ROS-free
-    :func:`pssnet_core.geometry.check_camera_model`.
+    As image_geometry's PinholeCameraModel: P's fx, fy, cx, cy when P is given (the camera matrix of the
+    rectified image, image_rect), K's when P is all zero. The checks (field of view, principal point, skew,
+    R a rotation, P equal to K where D is zero and R the identity) and the rule are the ROS-free
+    :func:`pssnet_core.geometry.check_camera_model`. Binning and ROI are not applied: an image whose size
+    differs from the CameraInfo's is refused where the two meet (:func:`pssnet_core.geometry.validate_depth_and_mask`).
 
     Raises:
         ConversionError: zero image size, an all-zero K, or an implausible calibration (the message names the

@@ -14,6 +14,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rclpy
@@ -24,9 +25,11 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
-from pssnet_core.data.scenes import RenderedView
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image
 from pssnet_ros.spinning import spin_until_shutdown
+
+if TYPE_CHECKING:  # the scenes (and their shapes: manifold3d) load only where a scene is rendered
+    from pssnet_core.data.scenes import RenderedView
 
 FRAME_ID = "camera_depth_optical_frame"
 #: a test-split mug (round body, ring handle) that the shipped model never saw in training

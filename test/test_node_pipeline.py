@@ -236,11 +236,13 @@ def test_camera_model_skew_r_and_p_are_checked():
         check_camera_model(640, 480, k_of(KINECT), [0.0] * 5, eye, p_of(replace(KINECT, fx=600.0)))
     with pytest.raises(ObservationError, match=r"^P cy = 300 but K cy = 239.5"):
         check_camera_model(640, 480, k_of(KINECT), [], eye, p_of(replace(KINECT, cy=300.0)))
-    # ... may differ after rectification (distortion or a rotation), but must still be a camera,
+    # ... may differ after rectification (distortion or a rotation), and are then the intrinsics (of the
+    # rectified image), but must still be a camera,
     rotated = Rotation.from_euler("y", 2.0, degrees=True).as_matrix().reshape(-1)
     wider = p_of(replace(KINECT, fx=500.0, fy=500.0), tx=-26.0)  # a stereo pair's right camera: Tx = -fx * B
-    assert check_camera_model(640, 480, k_of(KINECT), [0.1, -0.2, 0, 0, 0], eye, wider) == KINECT
-    assert check_camera_model(640, 480, k_of(KINECT), [], rotated, wider) == KINECT
+    assert check_camera_model(640, 480, k_of(KINECT), [0.1, -0.2, 0, 0, 0], eye, wider) == replace(KINECT, fx=500.0,
+                                                                                                   fy=500.0)
+    assert check_camera_model(640, 480, k_of(KINECT), [], rotated, wider) == replace(KINECT, fx=500.0, fy=500.0)
     with pytest.raises(ObservationError, match=r"^P fx = 1e\+30 px gives a horizontal field of view"):
         check_camera_model(640, 480, k_of(KINECT), [0.1], eye, p_of(replace(KINECT, fx=1e30)))
     # ... with the form of a projection matrix.

@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import ast
+import importlib.util
 import re
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
+
+import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Declared though not imported by name: what needs them.
@@ -13,7 +20,8 @@ IMPORT = re.compile(r"^\s*(?:from|import)\s+([A-Za-z_][A-Za-z0-9_]*)", re.MULTIL
 
 
 def is_ros_package(module: str) -> bool:
-    return module in ("rclpy", "launch", "launch_ros") or module.endswith(("_msgs", "_srvs", "_interfaces"))
+    return (module in ("rclpy", "launch", "launch_ros", "ament_index_python")
+            or module.endswith(("_msgs", "_srvs", "_interfaces")))
 
 
 def imported_ros_packages(files: list[Path]) -> set[str]:
@@ -43,3 +51,166 @@ def test_declared_ros_packages_are_imported_or_launch_tools():
     runtime = imported_ros_packages(sorted((ROOT / "pssnet_ros").glob("*.py")) + sorted((ROOT / "launch").glob("*.py")))
     assert declared - runtime - set(INDIRECT) == set(), "declared but never imported: stale dependency"
     assert "from rclpy.lifecycle import" in (ROOT / "pssnet_ros" / "completion_node.py").read_text()
+
+
+# ------------------------------------------------------------------------------- rosdep keys (rosdistro)
+#: The rosdistro entries of every name in the package.xml files (scripts/rosdep_extract.py writes it).
+ROSDISTRO = yaml.safe_load((ROOT / "test" / "data" / "rosdep_keys.yaml").read_text())
+PACKAGE_XMLS = (ROOT / "package.xml", ROOT / "msg_schemas" / "package.xml")
+DEPEND_TAGS = ("depend", "build_depend", "buildtool_depend", "build_export_depend", "exec_depend", "test_depend",
+               "doc_depend")
+#: Python module -> the rosdep key that installs it.
+KEY_OF_MODULE = {
+    "numpy": "python3-numpy",
+    "scipy": "python3-scipy",
+    "yaml": "python3-yaml",
+    "cv2": "python3-opencv",
+    "tqdm": "python3-tqdm",
+    "torch": "python3-torch",
+    "open3d": "python3-open3d-pip",
+    "trimesh": "python3-trimesh-pip",
+    "rosbags": "python3-rosbags-pip",
+    "matplotlib": "python3-matplotlib",
+    "mpl_toolkits": "python3-matplotlib",
+    "skimage": "python3-skimage",
+    "mujoco": "python3-mujoco-pip",
+    "pytest": "python3-pytest",
+    "hypothesis": "python3-hypothesis",
+}
+#: Python modules that rosdistro has no key for (checked at the extract's commit): pip installs them.
+NO_KEY = {"manifold3d", "coacd", "ray"}
+#: What the node loads to start and to answer a call (the support plane: open3d), and `pssnet bag`.
+RUNTIME_MODULES = ("pssnet_ros.completion_node", "pssnet_core.pipeline", "pssnet_core.inference",
+                   "pssnet_core.models", "pssnet_core.sampling", "pssnet_core.support_plane", "pssnet_ros.bag")
+
+
+def all_dependencies(path: Path) -> dict[str, set[str]]:
+    """Dependency tag -> names, for one package.xml."""
+    root = ET.parse(path).getroot()
+    return {tag: {e.text.strip() for e in root.iter(tag)} for tag in DEPEND_TAGS}
+
+
+def own_packages() -> set[str]:
+    return {ET.parse(path).getroot().findtext("name") for path in PACKAGE_XMLS}
+
+
+def resolves(rule: object, codename: str) -> bool:
+    """Whether a rosdep rule for one OS (a list, {pip: ...}, or {codename or '*': ...}) installs something."""
+    if isinstance(rule, list):
+        return bool(rule)
+    if not isinstance(rule, dict):
+        return False
+    if "pip" in rule or "packages" in rule:
+        return True
+    if codename in rule:
+        return resolves(rule[codename], codename)
+    return resolves(rule.get("*"), codename)
+
+
+def third_party_imports(files: list[Path]) -> set[str]:
+    """Top-level modules the files import that are neither the standard library, ROS, nor this repository's."""
+    local = {f.stem for d in ("pssnet_core", "pssnet_ros", "launch", "test", "benchmarks", "scripts")
+             for f in (ROOT / d).rglob("*.py")} | {"pssnet_core", "pssnet_ros"}
+    modules = set()
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                modules.update(alias.name.split(".")[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                modules.add(node.module.split(".")[0])
+    return {m for m in modules
+            if m not in sys.stdlib_module_names and m not in local and not is_ros_package(m) and m != "__future__"}
+
+
+def test_every_dependency_is_a_rosdistro_key_or_released_package():
+    keys, released = ROSDISTRO["rosdep_keys"], ROSDISTRO["released_packages"]
+    own = own_packages()
+    for path in PACKAGE_XMLS:
+        for tag, names in all_dependencies(path).items():
+            unknown = sorted(names - own - set(keys) - set(released))
+            assert not unknown, (f"{path.name} <{tag}> {unknown}: no rosdep key of rosdistro "
+                                 f"{ROSDISTRO['rosdistro_commit'][:12]} nor a released {ROSDISTRO['distro']} package "
+                                 "(see the header of test/data/rosdep_keys.yaml)")
+
+
+def test_rosdep_keys_resolve_on_every_release_platform():
+    """A key that exists can still resolve to nothing: python3-open3d is null on Ubuntu 24.04 (noble)."""
+    for key, entry in ROSDISTRO["rosdep_keys"].items():
+        for os_name, codenames in ROSDISTRO["release_platforms"].items():
+            for codename in codenames:
+                assert resolves(entry[os_name], codename), f"rosdep key {key} installs nothing on {codename}"
+    assert not resolves({"*": ["python3-open3d"], "noble": None}, "noble")  # the check bites
+    assert resolves({"*": ["python3-torch"], "focal": None}, "noble") and resolves({"pip": {"packages": ["x"]}}, "")
+
+
+def test_every_third_party_import_has_a_key_or_is_known_to_have_none():
+    package = third_party_imports(sorted((ROOT / "pssnet_core").rglob("*.py"))
+                                  + sorted((ROOT / "pssnet_ros").glob("*.py")))
+    tests = third_party_imports(sorted((ROOT / "test").glob("*.py")))
+    assert {"torch", "open3d", "manifold3d"} <= package and {"pytest", "hypothesis"} <= tests  # the scan works
+    unmapped = (package | tests) - set(KEY_OF_MODULE) - NO_KEY
+    assert not unmapped, f"imported, but neither in KEY_OF_MODULE (with its rosdep key) nor in NO_KEY: {unmapped}"
+    declared = dependencies("exec_depend") | dependencies("test_depend")
+    missing = {m: KEY_OF_MODULE[m] for m in package | tests if m in KEY_OF_MODULE and KEY_OF_MODULE[m] not in declared}
+    assert not missing, f"imported but its rosdep key is not declared: {missing}"
+    for module in NO_KEY:
+        assert not any(k.startswith(f"python3-{module}") for k in ROSDISTRO["rosdep_keys"]), module
+
+
+@pytest.mark.skipif(importlib.util.find_spec("rclpy") is None, reason="needs rclpy (the node's imports)")
+def test_what_the_node_loads_is_an_exec_depend():
+    """Imports the node and `pssnet bag` in a fresh interpreter: the Python keys among the exec_depends are
+    exactly those of the modules they load (the rest of the package's libraries are test_depends)."""
+    code = (f"import importlib, sys\nfor m in {RUNTIME_MODULES!r}: importlib.import_module(m)\n"
+            "print(' '.join(sorted({n.split('.')[0] for n in sys.modules})))")
+    loaded = set(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
+                                timeout=120).stdout.split())
+    assert {"torch", "open3d", "cv2", "rosbags", "rclpy"} <= loaded
+    needed = {KEY_OF_MODULE[m] for m in loaded if m in KEY_OF_MODULE}
+    exec_keys = {k for k in dependencies("exec_depend") if k in ROSDISTRO["rosdep_keys"]}
+    assert needed - exec_keys == set(), "the node loads these, but they are not exec_depend"
+    assert exec_keys - needed == set(), "exec_depend, but neither the node nor `pssnet bag` loads it: test_depend?"
+    assert not loaded & NO_KEY, f"the node loads modules without a rosdep key: {loaded & NO_KEY}"
+
+
+def test_license_file_matches_package_xml():
+    for path in PACKAGE_XMLS:  # each package carries its license file
+        assert ET.parse(path).getroot().findtext("license") == "BSD-3-Clause"
+        assert (path.parent / "LICENSE").read_text() == (ROOT / "LICENSE").read_text()
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("BSD 3-Clause License\n") and "Copyright (c) 2026, PSSNet-ROS contributors" in text
+    assert "Neither the name of the copyright holder nor the names of its" in text
+
+
+# ------------------------------------------------------------------------- requirements-runtime.txt
+#: rosdep key -> the PyPI distribution requirements-runtime.txt installs for it
+PIP_OF_KEY = {"python3-numpy": "numpy", "python3-scipy": "scipy", "python3-yaml": "pyyaml",
+              "python3-opencv": "opencv-python-headless", "python3-tqdm": "tqdm", "python3-torch": "torch",
+              "python3-open3d-pip": "open3d-cpu", "python3-rosbags-pip": "rosbags"}
+#: development, test, training and evaluation packages of requirements.txt: never on the robot
+NOT_RUNTIME = ("ros-jazzy-", "colcon", "ruff", "pytest", "hypothesis", "ray", "mujoco", "coacd", "manifold3d",
+               "trimesh", "matplotlib", "scikit-image", "setuptools")
+
+
+def pins(path: Path) -> dict[str, str]:
+    """Distribution name (lower case, extras dropped) -> the rest of the line, e.g. '==1.26.4'."""
+    result = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            match = re.match(r"([A-Za-z0-9_.-]+)(\[[^]]*\])?\s*(.*)", line)
+            result[match.group(1).lower()] = match.group(3)
+    return result
+
+
+def test_runtime_requirements_fit_an_apt_jazzy_robot():
+    runtime, development = pins(ROOT / "requirements-runtime.txt"), pins(ROOT / "requirements.txt")
+    assert runtime["numpy"].startswith("==1.26."), "Jazzy's message packages are built against numpy 1.x"
+    assert not [name for name in runtime if name.startswith(NOT_RUNTIME)], "a ROS wheel or a development package"
+    exec_keys = {k for k in dependencies("exec_depend") if k in ROSDISTRO["rosdep_keys"]}
+    assert set(PIP_OF_KEY) == exec_keys, "PIP_OF_KEY must name the pip package of every Python exec_depend"
+    assert set(runtime) == set(PIP_OF_KEY.values()), "requirements-runtime.txt is the exec_depends, by pip name"
+    for name, spec in runtime.items():
+        assert spec.startswith("=="), f"{name} is not pinned"
+        if name != "numpy":
+            assert development.get(name) == spec, f"{name}{spec}, but requirements.txt has {development.get(name)}"

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import Header
+from test_node_helpers import render_mug_scene
 
-from pssnet_core.geometry import CameraIntrinsics
+from pssnet_core.geometry import CameraIntrinsics, masked_points
 from pssnet_ros.conversions import (
     ConversionError,
     camera_info_to_intrinsics,
@@ -154,7 +158,57 @@ def test_camera_info_no_camera_has_is_refused_naming_the_field():
     msg = intrinsics_to_camera_info(intrinsics)
     msg.d = [0.05, -0.1, 0.0, 0.0, 0.0]  # distorted: P is the rectified camera, free to differ from K
     msg.p[0] = msg.p[5] = 500.0
-    assert camera_info_to_intrinsics(msg) == intrinsics
+    assert camera_info_to_intrinsics(msg) == replace(intrinsics, fx=500.0, fy=500.0)
+    msg.p[1] = 100.0  # P's skew, dropped like K's, is checked like K's
+    with pytest.raises(ConversionError, match=r"^camera_info: P skew P\[0,1\] = 100 shifts pixels"):
+        camera_info_to_intrinsics(msg)
+
+
+def raw_camera_info(rectified: CameraIntrinsics, rotation: np.ndarray | None = None) -> CameraInfo:
+    """What a driver publishes for a distorted camera whose rectified image (image_proc's image_rect) has the
+    intrinsics ``rectified``: K of the raw image (longer focal length, off-centre), D non-zero, P of the
+    rectified image."""
+    msg = intrinsics_to_camera_info(rectified)
+    raw = replace(rectified, fx=rectified.fx * 1.08, fy=rectified.fy * 1.08, cx=rectified.cx + 12.0,
+                  cy=rectified.cy - 9.0)
+    msg.k = raw.matrix().reshape(-1).tolist()
+    msg.d = [-0.28, 0.07, 0.0005, -0.0003, 0.0]
+    if rotation is not None:
+        msg.r = rotation.reshape(-1).tolist()
+    return msg
+
+
+def test_a_rectified_image_is_back_projected_with_p_as_image_geometry_does():
+    """image_geometry's PinholeCameraModel maps pixels of the rectified image with P (fx = P[0,0], cx = P[0,2]):
+    a depth image rendered with the rectified camera gives its true points only with P's intrinsics."""
+    scene = render_mug_scene(seed=0)
+    msg = raw_camera_info(scene.intrinsics)
+    assert camera_info_to_intrinsics(msg) == scene.intrinsics
+    truth = masked_points(scene.depth, scene.mask, scene.intrinsics)
+    np.testing.assert_array_equal(masked_points(scene.depth, scene.mask, camera_info_to_intrinsics(msg)), truth)
+    with_k = masked_points(scene.depth, scene.mask, CameraIntrinsics.from_k(msg.k, msg.width, msg.height))
+    assert np.linalg.norm(with_k - truth, axis=1).mean() > 0.005  # K would move the object by centimetres
+    # A stereo camera's rectification rotation (R not the identity) without distortion: P as well.
+    msg = raw_camera_info(scene.intrinsics, Rotation.from_euler("y", 1.5, degrees=True).as_matrix())
+    msg.d = [0.0] * 5
+    assert camera_info_to_intrinsics(msg) == scene.intrinsics
+    # P all zero (not given): K is all there is.
+    msg.p = [0.0] * 12
+    assert camera_info_to_intrinsics(msg) == CameraIntrinsics.from_k(msg.k, msg.width, msg.height)
+
+
+def test_p_that_disagrees_with_k_of_a_camera_without_distortion_is_refused():
+    """D zero and R the identity: the raw image is its own rectified image, so K and P describe one camera."""
+    scene = render_mug_scene(seed=0)
+    msg = raw_camera_info(scene.intrinsics)
+    for d in ([0.0] * 5, []):
+        msg.d = d
+        with pytest.raises(ConversionError, match=r"^camera_info: P fx = 525 but K fx = 567: without distortion "
+                                                  r"and rectification \(D zero, R identity\) the two must agree"):
+            camera_info_to_intrinsics(msg)
+    msg.r = [0.0] * 9  # R not given counts as the identity
+    with pytest.raises(ConversionError, match="P fx = 525 but K fx = 567"):
+        camera_info_to_intrinsics(msg)
 
 
 def test_pointcloud_round_trip_with_and_without_sample():

@@ -19,7 +19,7 @@ from pssnet_core.sampling import (
     CheckedSamplerConfig,
     GridCheck,
 )
-from pssnet_core.spread import BitRows, farthest_point_selection
+from pssnet_core.spread import BitRows, farthest_point_selection, row_bit_counts, row_bit_counts_portable
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 N = 16
@@ -86,6 +86,20 @@ def test_packed_jaccard_and_farthest_point_selection_with_cell_weights():
         assert set(np.asarray(labels)[cell == position]) == {labels[index]}
     copies = BitRows.pack(np.repeat(grids_array[:1], 4, axis=0))
     assert len(farthest_point_selection(copies, 3)[0]) == 1  # identical grids: nothing more to spread over
+
+
+def test_bit_counts_agree_with_and_without_numpy_bitwise_count():
+    """numpy 1.26 (Ubuntu 24.04, apt ROS 2 Jazzy) has no np.bitwise_count: the portable popcount counts the same."""
+    rng = np.random.default_rng(1)
+    grids = rng.random((7, 32**3)) < rng.random((7, 1))
+    grids[0], grids[1] = False, True
+    assert row_bit_counts_portable(np.array([[2**64 - 1, 0, 1 << 63]], dtype=np.uint64)).tolist() == [65]
+    words = BitRows.pack(grids).words
+    expected = grids.sum(axis=1)
+    np.testing.assert_array_equal(row_bit_counts_portable(words), expected)
+    np.testing.assert_array_equal(row_bit_counts(words), expected)
+    np.testing.assert_array_equal(row_bit_counts(words[::2] & words[1]), grids[::2].sum(axis=1))
+    assert BitRows.pack(grids).sizes.dtype == np.int64
 
 
 def test_config_checks_and_proposal_counts():
