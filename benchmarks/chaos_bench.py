@@ -34,6 +34,7 @@ from pssnet_interfaces.srv import SampleCompletions
 
 from pssnet_ros import chaos
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_ros.node_under_test import NodeUnderTest
 from pssnet_ros.processes import (
     SHM_GRACE_S,
     RosProcess,
@@ -41,25 +42,17 @@ from pssnet_ros.processes import (
     clean_stale_shm,
     cpu_kind,
     ros_env,
-    ros_param_args,
     shm_files,
     stale_shm_files,
 )
 
 
-def start_node(domain: int, threads: int, model: str, **params: object) -> RosProcess:
-    """A completion node allowing heavy requests, ready to serve (RosProcess.stop() is the caller's)."""
+def node_under_test(domain: int, threads: int, model: str, **params: object) -> NodeUnderTest:
+    """A completion node allowing heavy requests (not started; ``close()`` is the caller's)."""
     values = dict(chaos.NODE_PARAMS, up_vector=chaos.scene_up_vector(), threads=threads, **params)
     if model:
         values["model_path"] = model
-    process = RosProcess.python_module("pssnet_ros.completion_node", ros_param_args(**values), ros_env(domain),
-                                       name="node")
-    try:
-        process.wait_for(r"ready: serving", timeout=180)
-    except BaseException:
-        process.stop()
-        raise
-    return process
+    return NodeUnderTest(domain, **values)
 
 
 def mib(n: float) -> str:
@@ -72,14 +65,14 @@ def seconds(value: float | None, missing: str) -> str:
 
 def node_killed(args: argparse.Namespace, domain: int) -> list[dict]:
     reports = []
-    node = start_node(domain, args.threads, args.model)
+    node = node_under_test(domain, args.threads, args.model)
     try:
+        process = node.start()
         with RosClient(domain, "chaos_bench_a") as ros:
             for i in range(args.repeats):
                 watch = args.watch_server if i == 0 else 0.0  # DDS takes its participant lease to notice
-                report, node = chaos.kill_node_mid_call(
-                    ros, node, lambda: start_node(domain, args.threads, args.model), args.call_timeout,
-                    watch_server_s=watch)
+                report, process = chaos.kill_node_mid_call(ros, process, node.start, args.call_timeout,
+                                                           watch_server_s=watch)
                 fates = {fate: list(report.fates.values()).count(fate) for fate in set(report.fates.values())}
                 gone = seconds(report.server_gone_s, f"not within {watch:g} s" if watch else "not watched")
                 print(f"[chaos] (a) node killed {report.in_flight_s * 1000:.0f} ms into a {chaos.HEAVY_SAMPLES}-"
@@ -93,18 +86,19 @@ def node_killed(args: argparse.Namespace, domain: int) -> list[dict]:
                       f"{len(report.stale_before_restart)} unused at the restart; fates {fates}")
                 reports.append(asdict(report))
     finally:
-        node.stop()
+        node.close()
     return reports
 
 
 def client_killed(args: argparse.Namespace, domain: int) -> list[dict]:
     reports = []
     dead: dict[str, int] = {}
-    node = start_node(domain, args.threads, args.model)
+    node = node_under_test(domain, args.threads, args.model)
     try:
+        node.start()
         with RosClient(domain, "chaos_bench_b") as ros:
             for _ in range(args.repeats):
-                report = chaos.kill_client_mid_call(ros, node, ros_env(domain))
+                report = chaos.kill_client_mid_call(ros, node.process, ros_env(domain))
                 dead.update(report.killed_files)
                 print(f"[chaos] (b) client killed {report.in_flight_s * 1000:.0f} ms into its call (answered "
                       f"before: {report.answered_before_kill}); node alive {report.node_alive}; next client "
@@ -112,7 +106,7 @@ def client_killed(args: argparse.Namespace, domain: int) -> list[dict]:
                       f"client's request; node: {report.next_message}); service failures {report.failures}")
                 reports.append(asdict(report))
     finally:
-        node.stop()
+        node.close()
     print(f"[chaos] (b) the killed clients' files removed afterwards: {len(chaos.remove_dead_files(dead))}")
     return reports
 
@@ -122,10 +116,11 @@ def stale_shared_memory(args: argparse.Namespace, domain: int) -> dict:
     t0 = time.perf_counter()
     idle = clean_stale_shm()
     check_ms = (time.perf_counter() - t0) * 1000
-    node = start_node(domain, args.threads, args.model)
-    with RosClient(domain, "chaos_bench_c") as ros:
-        for _ in range(5):
-            ros.call(ros.service(SampleCompletions, SAMPLE_SERVICE), chaos.scene_request(chaos.LIGHT_SAMPLES))
+    lone = node_under_test(domain, args.threads, args.model)
+    node = lone.start()
+    for _ in range(5):
+        lone.ros.call(lone.ros.service(SampleCompletions, SAMPLE_SERVICE), chaos.scene_request(chaos.LIGHT_SAMPLES))
+    lone.close_client()  # the client leaves cleanly: the node is alone on its domain
     node.record_shm_files()
     node.proc.send_signal(signal.SIGKILL)
     node.stop()
@@ -134,8 +129,8 @@ def stale_shared_memory(args: argparse.Namespace, domain: int) -> dict:
     left_bytes = chaos.allocated_bytes(owned)
     wait_until(lambda: all(time.time() - os.stat(p).st_mtime >= SHM_GRACE_S for p in left if os.path.exists(p)),
                SHM_GRACE_S + 30, "the files older than the grace period")
-    restarted = start_node(domain, args.threads, args.model)
-    restarted.stop()
+    restarted = lone.start()
+    lone.close()
     logged = [line for line in restarted.lines() if "stale Fast DDS" in line]
     current = shm_files()
     remaining = sorted(p for p, inode in owned.items() if current.get(p) == inode)
@@ -149,10 +144,11 @@ def stale_shared_memory(args: argparse.Namespace, domain: int) -> dict:
 
 
 def stalled_subscribers(args: argparse.Namespace, domain: int) -> list[dict]:
-    node = start_node(domain, args.threads, args.model, continuous=True, max_rate_hz=float(args.max_rate))
+    node = node_under_test(domain, args.threads, args.model, continuous=True, max_rate_hz=float(args.max_rate))
     env = ros_env(domain)
     windows = []
     try:
+        process = node.start()
         with RosClient(domain, "chaos_bench_d") as ros, \
                 RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", str(args.camera_rate)], env,
                                          name="camera") as camera:
@@ -163,12 +159,12 @@ def stalled_subscribers(args: argparse.Namespace, domain: int) -> list[dict]:
             # Each stalled case follows a window alone: the machine is shared, so compare neighbours.
             cases = [(), *((m,) for m in chaos.SUBSCRIBER_MODES), chaos.SUBSCRIBER_MODES]
             for modes in [case for _ in range(args.rounds) for stalled in cases[1:] for case in ((), stalled)]:
-                window, lines = chaos.run_with_subscribers(ros, listener, node, env, modes, args.stall_seconds,
+                window, lines = chaos.run_with_subscribers(ros, listener, process, env, modes, args.stall_seconds,
                                                            request, timeout=120)
                 print(f"[chaos] (d) {window.summary()}; the subscribers: {lines or '-'}")
                 windows.append(asdict(window) | {"rate_hz": window.rate_hz, "subscribers": lines})
     finally:
-        node.stop()
+        node.close()
     return windows
 
 
@@ -177,9 +173,10 @@ def transitions_mid_work(args: argparse.Namespace, domain: int) -> list[dict]:
     spread over 0-1 s after the work started (so that every step of the pipeline is hit)."""
     reports: list[dict] = []
     delays = np.random.default_rng(0).uniform(0.0, 1.0, size=args.repeats)
-    node = start_node(domain, args.threads, args.model, num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0)
+    node = node_under_test(domain, args.threads, args.model, num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0)
     camera = None
     try:
+        process = node.start()
         with RosClient(domain, "chaos_bench_e") as ros:
             for work in chaos.WORK_KINDS:
                 continuous = work == "topics"
@@ -188,19 +185,17 @@ def transitions_mid_work(args: argparse.Namespace, domain: int) -> list[dict]:
                                                       ros_env(domain), name="camera")
                     camera.wait_for(r"publishing", 60)
                     assert ros.set_parameters(continuous=True)[0].successful
+                    node.params["continuous"] = True  # for the node started again after "shutdown"
                 for transition in chaos.TRANSITION_SEQUENCES:
                     for delay in delays:
                         try:
-                            report, node = chaos.transition_mid_work(
-                                ros, node, transition, work,
-                                lambda c=continuous: start_node(domain, args.threads, args.model, continuous=c,
-                                                                num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0),
-                                delay_s=float(delay), timeout=120.0)
+                            report, process = chaos.transition_mid_work(ros, process, transition, work, node.start,
+                                                                        delay_s=float(delay), timeout=120.0)
                         except Exception:
-                            if node.running():  # a hung node prints its threads' stacks on SIGUSR1
-                                node.proc.send_signal(signal.SIGUSR1)
+                            if process.running():  # a hung node prints its threads' stacks on SIGUSR1
+                                process.proc.send_signal(signal.SIGUSR1)
                                 time.sleep(2.0)
-                            print("[chaos] (e) the node's last output:\n" + "\n".join(node.lines()[-200:]))
+                            print("[chaos] (e) the node's last output:\n" + "\n".join(process.lines()[-200:]))
                             raise
                         reports.append(asdict(report))
                         if not (report.node_alive and report.restored):
@@ -210,7 +205,7 @@ def transitions_mid_work(args: argparse.Namespace, domain: int) -> list[dict]:
     finally:
         if camera is not None:
             camera.stop()
-        node.stop()
+        node.close()
     return reports
 
 

@@ -41,7 +41,8 @@ import numpy as np
 
 from pssnet_core.data.scenes import RenderedView
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.processes import RosProcess, claim_domain_id, cpu_kind, ros_env
+from pssnet_ros.node_under_test import NodeUnderTest
+from pssnet_ros.processes import RosProcess, claim_domain_id, cpu_kind
 from pssnet_ros.synthetic_camera import FRAME_ID, SceneOptions, render_scene
 
 #: requests or messages between two progress lines (with the node's RSS)
@@ -447,15 +448,11 @@ def main() -> int:
 
     view = render_scene(SceneOptions())
     fuzzer = Fuzzer(view, args.seed, args.samples)
-    up = "[" + ",".join(repr(float(v)) for v in view.up) + "]"
     # Continuous mode on, so that topic sets run through the whole pipeline too; grasps off and a low rate keep
     # the node's share of the 2 cores small (the service phase plans grasps for some valid requests).
-    node = RosProcess.python_module(
-        "pssnet_ros.completion_node",
-        ["--ros-args", "-p", f"up_vector:={up}", "-p", f"threads:={args.threads}", "-p", f"num_samples:={args.samples}",
-         "-p", "continuous:=true", "-p", "continuous_grasps:=false", "-p", "max_rate_hz:=5.0"]
-        + (["-p", f"model_path:={args.model}"] if args.model else []),
-        ros_env(args.domain_id), name="node")
+    model = {"model_path": args.model} if args.model else {}
+    under_test = NodeUnderTest(args.domain_id, up_vector=view.up, threads=args.threads, num_samples=args.samples,
+                               continuous=True, continuous_grasps=False, max_rate_hz=5.0, **model)
     tally, topics, crashes = Tally(), TopicTally(), 0
     service_s = topic_s = 0.0
     rss_start = rss_before = rss_service = rss_after = 0
@@ -463,8 +460,8 @@ def main() -> int:
     stats_after: dict[str, int] = {}
     final_ok, final_message = False, "node not running"
     try:
-        print(f"[fuzz] {node.wait_for(r'model .*', timeout=180).group(0)}", flush=True)
-        node.wait_for(r"ready: serving", timeout=180)
+        node = under_test.start()
+        print(f"[fuzz] {node.wait_for(r'model .*', timeout=10).group(0)}", flush=True)
         rss_start = rss_kib(node.pid)
         with RosClient(args.domain_id, "fuzz_client") as ros:
             pubs = input_publishers(ros)
@@ -499,7 +496,7 @@ def main() -> int:
                 rss_after = rss_kib(node.pid)
                 stats_after = ros.stats()
     finally:
-        code = node.stop()
+        code = under_test.close()
     gauges = ("latest_set_stamp_ns", "sets_pending", "sets_in_progress")  # states, not counters
     counters = {k: v - stats_before.get(k, 0) for k, v in stats_after.items() if k not in gauges}
     growth = 100.0 * (rss_after - rss_before) / rss_before if rss_after else float("nan")

@@ -28,7 +28,8 @@ import numpy as np
 from fuzz_bench import REFUSAL, REQUEST_FAMILIES, Fuzzer, rss_kib
 
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.processes import RosProcess, claim_domain_id, cpu_kind, ros_env, ros_param_args
+from pssnet_ros.node_under_test import NodeUnderTest
+from pssnet_ros.processes import cpu_kind
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
 HUGE = (3000, 4000)  # rows, columns: a 12-megapixel depth image
@@ -93,42 +94,38 @@ def main() -> int:
     args = parser.parse_args()
     from pssnet_interfaces.srv import SampleCompletions
 
-    domain = claim_domain_id(10 + os.getpid() % 90)
     view = render_scene(SceneOptions())
     fuzzer = Fuzzer(view, args.seed, args.samples)
     refused_families = sorted(name for name, (outcome, _) in REQUEST_FAMILIES.items() if outcome == REFUSAL)
-    env = ros_env(domain)
-    env.update(dict(item.split("=", 1) for item in args.env))
     params = {"up_vector": [float(v) for v in view.up], "threads": args.threads, "num_samples": args.samples}
     if args.model:
         params["model_path"] = args.model
     print(f"[memory] CPU: {cpu_kind()}, {os.cpu_count()} cores; node env {args.env or 'default'}", flush=True)
-    node = RosProcess.python_module("pssnet_ros.completion_node", ros_param_args(**params), env, name="node")
+    node = NodeUnderTest(env=dict(item.split("=", 1) for item in args.env), client_name="memory_client", **params)
     rows: dict[str, dict] = {}
     try:
-        node.wait_for(r"ready: serving", timeout=180)
-        with RosClient(domain, "memory_client") as ros:
-            service = ros.service(SampleCompletions, SAMPLE_SERVICE)
-            valid = fuzzer.request("valid_32FC1", 1)
-            valid.compute_grasps = True
-            rows["start"] = snapshot(node.pid, "ready")
-            warm = phase(ros, service, [valid] * max(1, args.valid // 10), 120.0)
-            time.sleep(args.idle)
-            rows["baseline"] = {**snapshot(node.pid, f"after {sum(warm.values())} valid and {args.idle:g} s idle"),
-                                **warm}
-            rng = np.random.default_rng(args.seed)
-            burst = (huge_request(fuzzer, i) if (i + 1) % args.huge_every == 0 else
-                     fuzzer.request(str(rng.choice(refused_families)), i) for i in range(args.malformed))
-            t0 = time.monotonic()
-            outcome = phase(ros, service, burst, 60.0)
-            rows["burst"] = {**snapshot(node.pid, f"after {args.malformed} malformed requests "
-                                                  f"({time.monotonic() - t0:.0f} s: {outcome})"), **outcome}
-            outcome = phase(ros, service, [valid] * args.valid, 120.0)
-            rows["valid"] = {**snapshot(node.pid, f"after {args.valid} valid ({outcome})"), **outcome}
-            time.sleep(args.idle)
-            rows["idle"] = snapshot(node.pid, f"after {args.idle:g} s idle")
+        pid = node.start().pid
+        ros = node.ros
+        service = ros.service(SampleCompletions, SAMPLE_SERVICE)
+        valid = fuzzer.request("valid_32FC1", 1)
+        valid.compute_grasps = True
+        rows["start"] = snapshot(pid, "ready")
+        warm = phase(ros, service, [valid] * max(1, args.valid // 10), 120.0)
+        time.sleep(args.idle)
+        rows["baseline"] = {**snapshot(pid, f"after {sum(warm.values())} valid and {args.idle:g} s idle"), **warm}
+        rng = np.random.default_rng(args.seed)
+        burst = (huge_request(fuzzer, i) if (i + 1) % args.huge_every == 0 else
+                 fuzzer.request(str(rng.choice(refused_families)), i) for i in range(args.malformed))
+        t0 = time.monotonic()
+        outcome = phase(ros, service, burst, 60.0)
+        rows["burst"] = {**snapshot(pid, f"after {args.malformed} malformed requests "
+                                         f"({time.monotonic() - t0:.0f} s: {outcome})"), **outcome}
+        outcome = phase(ros, service, [valid] * args.valid, 120.0)
+        rows["valid"] = {**snapshot(pid, f"after {args.valid} valid ({outcome})"), **outcome}
+        time.sleep(args.idle)
+        rows["idle"] = snapshot(pid, f"after {args.idle:g} s idle")
     finally:
-        code = node.stop()
+        code = node.close()
     growth = 100.0 * (rows["idle"]["rss_mib"] / rows["baseline"]["rss_mib"] - 1.0)
     print(f"[memory] RSS after the burst, {args.valid} valid calls and idle: {growth:+.1f} % over the baseline "
           f"(target < 5 %: {'met' if growth < 5.0 else 'not met'}); node exit code {code}")

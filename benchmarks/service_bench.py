@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
-from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
+from pssnet_ros.node_under_test import NodeUnderTest
+from pssnet_ros.processes import claim_domain_id, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
 # Parts 1 and 3 measure the node's overheads around one network pass: the posterior sampler, whatever the default.
@@ -121,16 +122,12 @@ def main() -> int:
     in_process = InProcessCall(SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
                                                          num_samples=args.samples, compute_grasps=False),
                                [float(v) for v in view.up], args.model, args.samples, args.threads)
-    up = "[" + ",".join(repr(float(v)) for v in view.up) + "]"
-    node = RosProcess.python_module(
-        "pssnet_ros.completion_node",
-        ["--ros-args", "-p", f"up_vector:={up}", "-p", f"threads:={args.threads}", "-p", f"num_samples:={args.samples}",
-         "-p", "max_input_age:=0.0", "-p", f"sampler:={POSTERIOR}"]
-        + (["-p", f"model_path:={args.model}"] if args.model else []),
-        ros_env(args.domain_id), name="node")
+    model = {"model_path": args.model} if args.model else {}
+    under_test = NodeUnderTest(args.domain_id, up_vector=view.up, threads=args.threads, num_samples=args.samples,
+                               max_input_age=0.0, sampler=POSTERIOR, **model)
     try:
-        model_line = node.wait_for(r"model .*", timeout=180).group(0)
-        node.wait_for(r"ready: serving", timeout=180)
+        node = under_test.start()
+        model_line = node.wait_for(r"model .*", timeout=10).group(0)
         with RosClient(args.domain_id, "bench_client") as ros:
             service = ros.service(SampleCompletions, SAMPLE_SERVICE)
             print(f"[bench] {model_line}")
@@ -244,8 +241,8 @@ def main() -> int:
                   f"received: {percentiles(lat) if lat else 'n/a'}")
             print(f"[bench] node counters: {delta}")
     finally:
-        code = node.stop()
-        leftovers = stale_shm_files(node.shm_files)
+        code = under_test.close()
+        leftovers = stale_shm_files(under_test.process.shm_files) if under_test.process else set()
     print(f"[bench] node exit code {code}; stale shared memory: {sorted(leftovers) or 'none'}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))

@@ -29,6 +29,7 @@ import numpy as np
 
 from pssnet_ros import chaos
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_ros.node_under_test import NodeUnderTest
 from pssnet_ros.processes import (
     RosProcess,
     claim_domain_id,
@@ -36,7 +37,6 @@ from pssnet_ros.processes import (
     cpu_seconds,
     machine_cpu,
     ros_env,
-    ros_param_args,
     rss_mb,
     stale_shm_files,
 )
@@ -258,11 +258,10 @@ def main() -> int:
                                      max_rate_hz=float(args.max_rate))
     if args.model:
         params["model_path"] = args.model
-    node = RosProcess.python_module("pssnet_ros.completion_node", ros_param_args(**params), ros_env(domain),
-                                    name="node")
+    under_test = NodeUnderTest(domain, **params)
     results: dict[str, object] = {"cpu": cpu_kind(), "args": vars(args)}
     try:
-        node.wait_for(r"ready: serving", timeout=180)
+        node = under_test.start()
         with RosClient(domain, "soak_bench") as ros:
             if args.minutes > 0:
                 minutes = soak(args, ros, node, domain)
@@ -271,8 +270,8 @@ def main() -> int:
             if args.clients > 0:
                 results["concurrency"] = concurrency(args, ros, node, domain)
     finally:
-        code = node.stop()
-        leftovers = stale_shm_files(node.shm_files)
+        code = under_test.close()
+        leftovers = stale_shm_files(under_test.process.shm_files) if under_test.process else set()
     print(f"[soak] node exit code {code}; stale shared memory: {sorted(leftovers) or 'none'}; load average after: "
           f"{os.getloadavg()[0]:.2f}")
     if args.json:

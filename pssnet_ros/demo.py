@@ -27,6 +27,7 @@ import numpy as np
 
 from pssnet_ros.bag import write_demo_bag
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
+from pssnet_ros.node_under_test import NodeUnderTest
 from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
 from pssnet_ros.synthetic_camera import SceneOptions, render_scene
 
@@ -201,18 +202,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     env = ros_env(domain)
     options = SceneOptions(mug_seed=args.mug_seed)
     view = render_scene(options)
-    up = "[" + ",".join(repr(float(v)) for v in view.up) + "]"
-    node_args = ["--ros-args", "-p", f"up_vector:={up}", "-p", f"num_samples:={args.samples}"]
-    if args.model:  # rcl cannot parse an empty value (model_path:=); leaving it out means the shipped model
-        node_args += ["-p", f"model_path:={args.model}"]
+    # rcl cannot parse an empty value (model_path:=); leaving it out means the shipped model
+    model = {"model_path": args.model} if args.model else {}
     print(f"[demo] ROS_DOMAIN_ID={domain}; starting completion_node and synthetic_camera ...", flush=True)
     t_start = time.perf_counter()
-    node = RosProcess.python_module("pssnet_ros.completion_node", node_args, env, name="completion_node",
-                                    echo=args.verbose)
+    node = NodeUnderTest(domain, timeout=args.timeout, echo=args.verbose, client_name="pssnet_demo_ready",
+                         up_vector=view.up, num_samples=args.samples, **model)
     camera = None
     code = 1
     try:
-        node.wait_for(r"ready: serving", timeout=args.timeout)
+        node.start()
+        node.close_client()  # only the readiness check used it; run_client has its own
         camera = RosProcess.python_module(
             "pssnet_ros.synthetic_camera", ["--rate", str(args.rate), "--mug-seed", str(args.mug_seed)], env,
             name="synthetic_camera", echo=args.verbose)
@@ -239,10 +239,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"[demo] error: {error}", file=sys.stderr)
     finally:
         codes = {}
-        for process in (camera, node):
+        for process in (camera, node.process):
             if process is not None:
                 codes[process.name] = process.stop()
-        leftovers = stale_shm_files({**node.shm_files, **(camera.shm_files if camera else {})})
+        node.close_client()
+        leftovers = stale_shm_files({**(node.process.shm_files if node.process else {}),
+                                     **(camera.shm_files if camera else {})})
     bad = {name: c for name, c in codes.items() if c != 0}
     if bad and code == 0:
         print(f"[demo] error: processes exited with {bad}", file=sys.stderr)

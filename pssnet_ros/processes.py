@@ -512,10 +512,12 @@ def ros_param_args(**params: bool | int | float | str | Sequence[float]) -> list
     point, booleans are lower case, sequences are double arrays)."""
     args = ["--ros-args"]
     for name, value in params.items():
+        if hasattr(value, "tolist"):  # numpy arrays and scalars: as the Python values they hold
+            value = value.tolist()
         if isinstance(value, bool):
             text = str(value).lower()
-        elif isinstance(value, str):
-            text = value
+        elif isinstance(value, str | os.PathLike):
+            text = os.fspath(value)
         elif isinstance(value, Sequence):
             text = "[" + ",".join(repr(float(v)) for v in value) + "]"
         else:

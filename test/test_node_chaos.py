@@ -19,10 +19,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_node_helpers import domain_for, node_args, node_checkpoint
+from test_node_helpers import domain_for, node_checkpoint
 
 from pssnet_ros import chaos
 from pssnet_ros.client import RosClient, wait_until
+from pssnet_ros.node_under_test import NodeUnderTest
 from pssnet_ros.processes import (
     LOCK_SUFFIX,
     SHM_DIR,
@@ -45,18 +46,10 @@ def checkpoint(tmp_path_factory) -> Path:
     return node_checkpoint(tmp_path_factory.mktemp("chaos"))[0]
 
 
-def start_node(checkpoint: Path, domain: int) -> RosProcess:
-    """A completion node that allows heavy requests (:data:`chaos.NODE_PARAMS`), ready to serve."""
-    params = dict(chaos.NODE_PARAMS, up_vector=chaos.scene_up_vector(), threads=1, num_samples=chaos.LIGHT_SAMPLES,
-                  max_rate_hz=5.0)
-    process = RosProcess.python_module("pssnet_ros.completion_node", node_args(checkpoint, **params),
-                                       ros_env(domain), name="completion_node")
-    try:
-        process.wait_for(r"ready: serving /pssnet/sample_completions", timeout=120)
-    except BaseException:
-        process.stop()
-        raise
-    return process
+def node_under_test(checkpoint: Path, domain: int) -> NodeUnderTest:
+    """A completion node that allows heavy requests (:data:`chaos.NODE_PARAMS`), not started yet."""
+    return NodeUnderTest(domain, model_path=checkpoint, **chaos.NODE_PARAMS, up_vector=chaos.scene_up_vector(),
+                         threads=1, num_samples=chaos.LIGHT_SAMPLES, max_rate_hz=5.0)
 
 
 @pytest.fixture(scope="module")
@@ -69,9 +62,10 @@ def dead_files() -> Iterator[dict[str, int]]:
 
 @pytest.fixture(scope="module")
 def node(checkpoint, dead_files) -> Iterator[RosProcess]:
-    process = start_node(checkpoint, DOMAIN)
+    node = node_under_test(checkpoint, DOMAIN)
+    process = node.start()
     yield process
-    assert process.stop() == 0, process.output[-4000:]
+    assert node.close() == 0, process.output[-4000:]
 
 
 @pytest.fixture(scope="module")
@@ -213,17 +207,12 @@ def test_stalled_subscribers_stall_neither_completions_nor_the_service(node, ros
 
 # ---------------------------------------------------------------------------------- (a) node killed
 def test_node_killed_mid_call_client_gives_up_and_a_restarted_node_serves(checkpoint, dead_files):
-    domain = domain_for(12)
-    first = start_node(checkpoint, domain)
-    second = None
+    node = node_under_test(checkpoint, domain_for(12))
     try:
-        with RosClient(domain, "chaos_test_client_a") as ros:
-            report, second = chaos.kill_node_mid_call(ros, first, lambda: start_node(checkpoint, domain),
-                                                      CALL_TIMEOUT, TIMEOUT, backdate=True)
+        first = node.start()
+        report, _ = chaos.kill_node_mid_call(node.ros, first, node.start, CALL_TIMEOUT, TIMEOUT, backdate=True)
     finally:
-        first.stop()
-        if second is not None:
-            second.stop()
+        node.close()
     dead_files.update(report.shm_files)
     assert not report.answered, "an answer from a killed node"
     assert report.gave_up_after_kill_s is not None, f"the client still waited {CALL_TIMEOUT} s + 5 s after the call"

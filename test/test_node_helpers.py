@@ -7,8 +7,6 @@ is :class:`pssnet_ros.client.RosClient`, the one the demo and the benchmark use.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +18,7 @@ from pssnet_core.models import build_model, default_config
 from pssnet_core.models.checkpoint import save_checkpoint
 from pssnet_core.models.integrity import canonical_input
 from pssnet_core.shapes import make_shape
-from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env
+from pssnet_ros.processes import claim_domain_id
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32, "flow_hidden": 32, "flow_couplings": 4}
 
@@ -86,29 +84,3 @@ def make_request(scene: RenderedView, header, num_samples: int = 0, compute_gras
     depth, mask, info = scene_messages(scene, header, depth_encoding)
     return SampleCompletions.Request(depth=depth, mask=mask, camera_info=info, num_samples=num_samples,
                                      compute_grasps=compute_grasps)
-
-
-def node_args(checkpoint: Path, **params) -> list[str]:
-    """``--ros-args`` for the completion node: the checkpoint plus ``name:=value`` parameters."""
-    args = ["--ros-args", "-p", f"model_path:={checkpoint}"]
-    for name, value in params.items():
-        if isinstance(value, bool):
-            text = str(value).lower()
-        elif isinstance(value, list | tuple | np.ndarray):
-            text = "[" + ",".join(repr(float(v)) for v in value) + "]"
-        else:
-            text = repr(value) if isinstance(value, float) else str(value)
-        args += ["-p", f"{name}:={text}"]
-    return args
-
-
-@contextmanager
-def running_node(args: list[str], domain: int, ready: str, timeout: float = 120.0) -> Iterator[RosProcess]:
-    """A completion_node process started with ``args`` on ``domain``, yielded once its log matches ``ready``;
-    stopped (SIGINT, then harder) on exit."""
-    process = RosProcess.python_module("pssnet_ros.completion_node", args, ros_env(domain), name="completion_node")
-    try:
-        process.wait_for(ready, timeout=timeout)
-        yield process
-    finally:
-        process.stop()

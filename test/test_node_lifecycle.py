@@ -15,9 +15,7 @@ from pssnet_interfaces.srv import SampleCompletions
 from test_node_helpers import (
     domain_for,
     make_request,
-    node_args,
     render_mug_scene,
-    running_node,
     stamped_header,
     tiny_checkpoint,
 )
@@ -26,6 +24,7 @@ from pssnet_ros import chaos
 from pssnet_ros.client import NODE, SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.completion_node import CANCELLED_MESSAGE, Status
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
+from pssnet_ros.node_under_test import NodeUnderTest
 from pssnet_ros.processes import RosProcess, ros_env
 
 pytestmark = pytest.mark.ros
@@ -40,9 +39,8 @@ def checkpoint(tmp_path_factory):
 @pytest.fixture(scope="module")
 def node(tmp_path_factory):
     missing = tmp_path_factory.mktemp("missing") / "absent.pt"
-    with running_node(node_args(missing, autostart=False, threads=1, num_samples=4), DOMAIN,
-                      r"unconfigured: waiting for a lifecycle manager") as process:
-        yield process
+    with NodeUnderTest(DOMAIN, model_path=missing, autostart=False, threads=1, num_samples=4) as node:
+        yield node.process
 
 
 @pytest.fixture(scope="module")
@@ -164,39 +162,28 @@ def test_transitions_while_the_node_works_answer_the_call_and_keep_the_node(chec
     is answered (cancelled at its next step, or done), the node lives on (after shutdown: stops cleanly), and
     serves again. Each once here, at staggered moments; ``benchmarks/chaos_bench.py --only e`` runs them 50
     times each (RELIABILITY.md)."""
-    domain = domain_for(15)
-    env = ros_env(domain)
-    up = chaos.scene_up_vector()
-
-    def start(continuous: bool = False) -> RosProcess:
-        params = dict(chaos.NODE_PARAMS, up_vector=up, threads=1, num_samples=chaos.HEAVY_SAMPLES,
-                      continuous=continuous, max_rate_hz=20.0)
-        process = RosProcess.python_module("pssnet_ros.completion_node", node_args(checkpoint, **params), env,
-                                           name="completion_node")
-        process.wait_for(r"ready: serving", timeout=120)
-        return process
-
-    node = start()
+    node = NodeUnderTest(domain_for(15), model_path=checkpoint, **chaos.NODE_PARAMS, up_vector=chaos.scene_up_vector(),
+                         threads=1, num_samples=chaos.HEAVY_SAMPLES, max_rate_hz=20.0)
     camera = None
     reports = []
     try:
-        with RosClient(domain, "lifecycle_work_client") as ros:
-            for work in chaos.WORK_KINDS:
-                if work == "topics":
-                    camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"], env,
-                                                      name="camera")
-                    camera.wait_for(r"publishing", 60)
-                    assert ros.set_parameters(continuous=True)[0].successful
-                for i, transition in enumerate(chaos.TRANSITION_SEQUENCES):
-                    report, node = chaos.transition_mid_work(ros, node, transition, work,
-                                                             lambda work=work: start(continuous=work == "topics"),
-                                                             delay_s=0.15 * i, timeout=120)
-                    reports.append(report)
+        node.start()
+        for work in chaos.WORK_KINDS:
+            if work == "topics":
+                camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"],
+                                                  ros_env(node.domain), name="camera")
+                camera.wait_for(r"publishing", 60)
+                assert node.ros.set_parameters(continuous=True)[0].successful
+                node.params["continuous"] = True  # for the node started again after "shutdown"
+            for i, transition in enumerate(chaos.TRANSITION_SEQUENCES):
+                report, _ = chaos.transition_mid_work(node.ros, node.process, transition, work, node.start,
+                                                      delay_s=0.15 * i, timeout=120)
+                reports.append(report)
     finally:
         if camera is not None:
             camera.stop()
-        exit_code = node.stop()
-    assert exit_code == 0, node.output[-4000:]
+        exit_code = node.close()
+    assert exit_code == 0, node.process.output[-4000:]
     for report in reports:
         assert report.busy, report  # otherwise nothing was tested
         assert report.accepted and report.node_alive and report.restored, report

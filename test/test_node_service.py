@@ -17,16 +17,15 @@ from sensor_msgs.msg import PointField
 from test_node_helpers import (
     domain_for,
     make_request,
-    node_args,
     node_checkpoint,
     render_mug_scene,
-    running_node,
     stamped_header,
 )
 
 from pssnet_core.geometry import CameraIntrinsics
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy
+from pssnet_ros.node_under_test import NodeUnderTest
 from pssnet_ros.processes import stale_shm_files
 
 pytestmark = pytest.mark.ros
@@ -46,9 +45,8 @@ def checkpoint(tmp_path_factory):
 @pytest.fixture(scope="module")
 def node(checkpoint, scene):
     path, _ = checkpoint
-    with running_node(node_args(path, up_vector=scene.up, num_samples=8, threads=1), DOMAIN,
-                      r"ready: serving /pssnet/sample_completions") as process:
-        yield process
+    with NodeUnderTest(DOMAIN, model_path=path, up_vector=scene.up, num_samples=8, threads=1) as node:
+        yield node.process
 
 
 @pytest.fixture(scope="module")

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 from test_integrity import bench
-from test_node_helpers import domain_for, node_args, tiny_checkpoint
+from test_node_helpers import domain_for, tiny_checkpoint
 
 from pssnet_core.inference import DEFAULT_CHECKPOINT
-from pssnet_ros.processes import RosProcess, configure_this_process, ros_env
+from pssnet_ros.processes import RosProcess, configure_this_process, ros_env, ros_param_args
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(3)
@@ -28,19 +28,19 @@ def test_startup_errors_are_one_clean_line_and_exit_2(tmp_path):
     untrained = Path(shutil.copyfile(DEFAULT_CHECKPOINT, tmp_path / "untrained.pt"))
     bench.edit_state(untrained, bench.random_init(DEFAULT_CHECKPOINT), np.random.default_rng(0), True)
     cases = {
-        "bit-flipped model": (node_args(flipped),
+        "bit-flipped model": (ros_param_args(model_path=flipped),
                               r"\[completion_node\] error: cannot load the completion model: \S+flipped\.pt is "
                               r"corrupt: (weights differ|weight \S+ (has|spans))"),
-        "untrained model": (node_args(untrained),
+        "untrained model": (ros_param_args(model_path=untrained),
                             r"\[completion_node\] error: cannot load the completion model: \S+untrained\.pt: "
                             r"self-test failed: the model (empties|fills) the grid"),
-        "missing model": (node_args(tmp_path / "nope.pt"),
+        "missing model": (ros_param_args(model_path=tmp_path / "nope.pt"),
                           r"\[completion_node\] error: cannot load the completion model: no checkpoint file at "
                           r"\S+nope\.pt"),
-        "corrupt model": (node_args(corrupt),
+        "corrupt model": (ros_param_args(model_path=corrupt),
                           r"\[completion_node\] error: cannot load the completion model: "
                           r"\S+corrupt\.pt is not a readable checkpoint \(corrupt or truncated\?\)"),
-        "out of range": (node_args(tmp_path / "nope.pt", num_samples=5000),
+        "out of range": (ros_param_args(model_path=tmp_path / "nope.pt", num_samples=5000),
                          r"\[completion_node\] error: invalid parameter num_samples: .*out of range. Min: 1, Max: "
                          r"1000, value: 5000"),
         "bad ROS arguments": (["--ros-args", "-p", "model_path:="],

@@ -23,11 +23,12 @@ from pssnet_interfaces.msg import GraspCandidates
 from pssnet_interfaces.srv import SampleCompletions
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
-from test_node_helpers import domain_for, node_args, node_checkpoint, render_mug_scene, running_node, scene_messages
+from test_node_helpers import domain_for, node_checkpoint, render_mug_scene, scene_messages
 
 from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.completion_node import WARN_THROTTLE_S
 from pssnet_ros.conversions import numpy_to_image, pointcloud2_to_numpy
+from pssnet_ros.node_under_test import NodeUnderTest
 from pssnet_ros.processes import stale_shm_files
 
 pytestmark = pytest.mark.ros
@@ -53,9 +54,8 @@ def node(tmp_path_factory, scene):
     path, _ = node_checkpoint(tmp_path_factory.mktemp("node"))
     params = dict(up_vector=scene.up, num_samples=SAMPLES, threads=1, continuous=True, max_rate_hz=RATE_HZ,
                   max_input_age=MAX_INPUT_AGE, sync_tolerance=0.005)
-    with running_node(node_args(path, **params), DOMAIN,
-                      r"ready: serving /pssnet/sample_completions, continuous on") as process:
-        yield process
+    with NodeUnderTest(DOMAIN, model_path=path, **params) as node:
+        yield node.process
 
 
 def stamp_of(msg) -> int:
