@@ -10,7 +10,7 @@ next one in the same process), and reads back the numbers each writes with ``--j
   rate in continuous mode with grasps (camera at 30 Hz);
 - plausible_bench: plausible-set pairs per second (synthetic mugs unless ``--plausible-data``).
 
-Targets depend on the CPU kind (issue 12): fp32 on AVX2-only CPUs, bf16 where the CPU has AVX512-BF16 or AMX.
+Targets depend on the CPU kind: fp32 on AVX2-only CPUs, bf16 where the CPU has AVX512-BF16 or AMX.
 The first lines say which kind this is; the network rows say which inference path ran (fused fp32, fused bf16,
 unfused). ``--precision`` forces the network rows' precision (default auto: bf16 where native), so that both
 paths can be timed on any CPU (bf16 on an AVX2-only CPU is emulated: slow); the service and topic rows run the
@@ -32,8 +32,8 @@ from pssnet_ros.processes import cpu_kind
 
 HERE = Path(__file__).resolve().parent
 SHIPPED_MODEL = HERE.parent / "pssnet_core" / "checkpoints" / "default_pssnet_32.pt"
-#: Plausible-set pairs per second before issue 12 (BENCHMARKS.md: 8 references of the mug test set, 2 workers,
-#: AVX2 CPU); the target is ten times that.
+#: Plausible-set pairs per second before the plausible-set speed-up (BENCHMARKS.md: 8 references of the mug test
+#: set, 2 workers, AVX2 CPU); the target is ten times that.
 PLAUSIBLE_BASELINE_PAIRS_S = 218.0
 
 

@@ -1,4 +1,4 @@
-"""Chaos benchmark of completion_node over real DDS (issue 16); the scenarios are pssnet_ros.chaos's.
+"""Chaos benchmark of completion_node over real DDS; the scenarios are pssnet_ros.chaos's.
 
 (a) kill -9 of the node in the middle of a service call (``--repeats`` times): how long the client waits
     (its timeout), whether DDS tells it the server is gone and when, how fast a restarted node serves, and

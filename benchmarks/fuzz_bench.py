@@ -1,4 +1,4 @@
-"""Fuzz benchmark of completion_node over real DDS: malformed service requests and topic messages (issue 16).
+"""Fuzz benchmark of completion_node over real DDS: malformed service requests and topic messages.
 
 Starts the real node (shipped model, its own ROS domain), then, from one seeded numpy generator:
 

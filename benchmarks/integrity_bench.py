@@ -1,5 +1,5 @@
-"""Is a corrupt or untrained model ever served? Each corruption of issue 29, applied to a copy of the shipped
-checkpoint, then loaded and called the way the node does.
+"""Is a corrupt or untrained model ever served? Each corruption the integrity checks must catch, applied to a
+copy of the shipped checkpoint, then loaded and called the way the node does.
 
 Per case, the copy is loaded for serving (``CompletionPipeline.from_checkpoint``, what the node's configure
 calls: exit code 2 when it raises) and, if that succeeds, completes a rendered held-out mug (the first

@@ -1,4 +1,4 @@
-"""Soak and concurrency benchmark of completion_node over real DDS (issue 16).
+"""Soak and concurrency benchmark of completion_node over real DDS.
 
 1. Soak: the synthetic camera publishes at ``--rate`` Hz (30) for ``--minutes`` (10) while the node runs in
    continuous mode with grasps; after ``--warmup`` s, every minute: completions per second received by a

@@ -158,7 +158,7 @@ def claim_domain_id(preferred: int, low: int = 10, high: int = 99) -> int:
 
     Why a claim and not the ports alone: a test session picks the domains of all its modules when it collects
     them, minutes before their nodes bind any port, and a second session on the machine saw those domains as
-    free (two nodes answered one test's calls: node-test loop and CI run side by side, 2026-11-25).
+    free (two nodes answered one test's calls: node-test loop and CI run side by side).
     """
     DOMAIN_CLAIMS_DIR.mkdir(exist_ok=True)
     with contextlib.suppress(OSError):  # the first creator opens the folder to every user of the machine

@@ -1,4 +1,4 @@
-"""Model integrity (issue 29): every corruption of the weights is refused at load, a model that empties or
+"""Model integrity: every corruption of the weights is refused at load, a model that empties or
 fills the grid at start or at a call, never served. The corruptions are the benchmark's own
 (benchmarks/integrity_bench.py), applied to a small checkpoint here and to the shipped one where size matters."""
 

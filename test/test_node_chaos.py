@@ -1,4 +1,4 @@
-"""Chaos over real DDS (issue 16): kill -9 of the node and of a client in the middle of a call, stale Fast DDS
+"""Chaos over real DDS: kill -9 of the node and of a client in the middle of a call, stale Fast DDS
 shared memory, stalled subscribers of /pssnet/completions.
 
 The scenarios live in :mod:`pssnet_ros.chaos`; ``benchmarks/chaos_bench.py`` runs them longer and prints the

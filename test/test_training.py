@@ -110,7 +110,7 @@ def test_chamfer_mm():
 
 def test_closing_prefetch_waits_for_its_thread():
     """A consumer that stops early (the last step of a run) leaves no producer thread behind: one still inside
-    torch code at interpreter exit aborts the process (the two-rank test's rank 1, issue 24)."""
+    torch code at interpreter exit aborts the process (the two-rank test's rank 1)."""
 
     def slow(made: list[int]) -> Iterator[int]:
         for i in range(100):

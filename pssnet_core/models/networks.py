@@ -128,7 +128,7 @@ def grid_order(side: int, stages: int) -> torch.Tensor:
 # the ReLU, and each such pass over the 21 MB 128 -> 64 output is a parallel region that, on a busy 2-core
 # machine, waits for the slower thread (BENCHMARKS.md, "Inference"). The same path runs in bf16 (weights packed
 # once in bf16, bf16 activations between stages) under CPU bf16 autocast: the autocast layers cast the weights and
-# permute blocks on every call, and on AMX CPUs those copies took more time than the matmuls (issue 24).
+# permute blocks on every call, and on AMX CPUs those copies took more time than the matmuls.
 
 
 # Largest intermediate of one chunk of the decoder's later stages (see Decoder3D.probabilities): a few MB, about

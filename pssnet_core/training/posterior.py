@@ -1,6 +1,6 @@
 """What a trained model's posterior does on each split: the memorisation gap and the width of the box posterior.
 
-Two questions from the ambiguity work (issue 11), answered with the posterior *mean* (no true box, no sampling):
+Two questions from the ambiguity work, answered with the posterior *mean* (no true box, no sampling):
 
 - Does the model recognise training objects? BCE per voxel and IoU of the posterior mean (``reconstruct``) on
   views of training objects against views of objects it has never seen (validation, test). A model that

@@ -164,7 +164,7 @@ def prefetch(iterator: Iterator[Any], depth: int = 2) -> Generator[Any, None, No
     it. Why wait: a daemon thread still inside torch code (``torch.from_numpy`` of the next batch) when the
     interpreter exits is unwound through C++ frames that must not unwind, and the process aborts ("terminate
     called without an active exception"): rank 1 of a distributed run, which leaves right after its last step,
-    did that now and then (issue 24).
+    did that now and then.
     """
     items: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
