@@ -28,5 +28,7 @@ setup(
             "completion_node = pssnet_ros.completion_node:main",
             "pssnet = pssnet_core.cli:main",
         ],
+        # Subcommands of `pssnet` that need ROS (pssnet_core.cli.PLUGIN_GROUP).
+        "pssnet.commands": ["bag = pssnet_ros.bag_cli"],
     },
 )

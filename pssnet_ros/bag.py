@@ -422,7 +422,7 @@ def write_demo_bag(path: Path, view: RenderedView, response: SampleCompletions.R
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """``pssnet bag`` (arguments from :mod:`pssnet_core.bag_cli`); returns the exit code."""
+    """``pssnet bag`` (arguments from :mod:`pssnet_ros.bag_cli`); returns the exit code."""
     try:
         overrides = read_params_file(args.params_file) if args.params_file else {}
         overrides.update(parse_param(p) for p in args.param)

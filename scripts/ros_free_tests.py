@@ -3,7 +3,7 @@ a message package or launch. `make test-py312` runs them on Python 3.12 with num
 
 A test file counts as ROS when any of its imports (also those inside test functions) reaches a ROS module;
 a repository module counts as ROS when its module-level imports do (imports inside its functions run only
-when those functions do, as `pssnet_core.bag_cli`'s import of `pssnet_ros.bag`).
+when those functions do, as `pssnet_ros.bag_cli`'s import of `pssnet_ros.bag`).
 
 Usage: python scripts/ros_free_tests.py [--ros]   (--ros: print the other files instead)
 """

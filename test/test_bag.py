@@ -17,7 +17,6 @@ from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import Header, String
 from test_node_helpers import node_checkpoint
 
-from pssnet_core.bag_cli import register
 from pssnet_core.pipeline import CompletionPipeline, PipelineConfig
 from pssnet_ros.bag import (
     SENSOR_QOS,
@@ -31,6 +30,7 @@ from pssnet_ros.bag import (
     read_params_file,
     write_demo_bag,
 )
+from pssnet_ros.bag_cli import register
 from pssnet_ros.completion_io import OUTPUT_TOPICS, output_messages, stamp_ns
 from pssnet_ros.conversions import pointcloud2_to_numpy
 from pssnet_ros.synthetic_camera import FRAME_ID, SceneOptions, render_scene, view_messages

@@ -1,7 +1,8 @@
 """``pssnet bag``: the completion node over a recorded rosbag2 (the work is in :mod:`pssnet_ros.bag`).
 
-Only the arguments live here: pssnet_core never imports rclpy, so the ROS side is imported when the
-command runs, not when ``pssnet --help`` builds the parser.
+The ROS package adds this command to the ``pssnet`` command line through the ``pssnet.commands`` entry point
+(setup.py): pssnet_core knows nothing of ROS. Only the arguments live here, so that ``pssnet --help`` does not
+import rclpy; the ROS side is imported when the command runs.
 """
 
 from __future__ import annotations
