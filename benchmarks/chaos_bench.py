@@ -243,7 +243,7 @@ def main() -> int:
     parser.add_argument("--only", default="abcde", help="scenarios to run, e.g. 'ad'")
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
-    domain = claim_domain_id(10 + os.getpid() % 90)
+    domain = claim_domain_id()
     print(f"[chaos] CPU: {cpu_kind()}; {os.cpu_count()} cores; {platform.platform()}; ROS_DOMAIN_ID {domain}; "
           f"node threads {args.threads}")
     results: dict[str, object] = {"cpu": cpu_kind()}

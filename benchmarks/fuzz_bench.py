@@ -442,7 +442,7 @@ def main() -> int:
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     if args.domain_id is None:
-        args.domain_id = claim_domain_id(10 + os.getpid() % 90)
+        args.domain_id = claim_domain_id()
 
     from pssnet_interfaces.srv import SampleCompletions
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
 import re
 import time
 from pathlib import Path
@@ -104,7 +103,7 @@ def main() -> int:
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
     if args.domain_id is None:
-        args.domain_id = claim_domain_id(10 + os.getpid() % 90)
+        args.domain_id = claim_domain_id()
 
     from pssnet_interfaces.srv import SampleCompletions
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data

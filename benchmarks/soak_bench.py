@@ -249,7 +249,7 @@ def main() -> int:
     if args.worker is not None:
         return worker(args)
 
-    domain = claim_domain_id(10 + os.getpid() % 90)
+    domain = claim_domain_id()
     print(f"[soak] CPU: {cpu_kind()}; {os.cpu_count()} cores; {platform.platform()}; ROS_DOMAIN_ID {domain}; "
           f"node threads {args.threads}, {args.samples} samples, camera {args.rate:g} Hz, max_rate_hz "
           f"{args.max_rate:g}, grasps on; load average before: {os.getloadavg()[0]:.2f}", flush=True)

@@ -84,16 +84,19 @@ class RosClient:
 
         Clients are cached by (type, name) unless ``new`` (several clients of one service, e.g. for concurrency).
         """
-        key = (srv_type, name)
-        if not new and key in self._clients:
-            return self._clients[key]
-        client = self.node.create_client(srv_type, name)
+        client = self.node.create_client(srv_type, name) if new else self._client(srv_type, name)
         if not client.wait_for_service(timeout_sec=timeout):
-            self.node.destroy_client(client)
+            if new:
+                self.node.destroy_client(client)
             raise TimeoutError(f"service {name} not discovered within {timeout:g} s")
-        if not new:
-            self._clients[key] = client
         return client
+
+    def _client(self, srv_type: type, name: str) -> Any:
+        """The cached client of service ``name``, created (without waiting for discovery) on first use."""
+        key = (srv_type, name)
+        if key not in self._clients:
+            self._clients[key] = self.node.create_client(srv_type, name)
+        return self._clients[key]
 
     def call_until_answered(self, srv_type: type, name: str, request: Any, attempt_timeout: float = 30.0,
                             attempts: int = 5) -> tuple[Any, int]:
@@ -108,10 +111,7 @@ class RosClient:
         Raises:
             TimeoutError: ``attempts`` attempts went unanswered.
         """
-        key = (srv_type, name)
-        if key not in self._clients:  # no discovery wait here: the server may be down right now
-            self._clients[key] = self.node.create_client(srv_type, name)
-        client = self._clients[key]
+        client = self._client(srv_type, name)  # no discovery wait here: the server may be down right now
         for attempt in range(1, attempts + 1):
             try:
                 return self.call(client, request, attempt_timeout), attempt

@@ -16,7 +16,6 @@ Everything runs on its own ROS domain with discovery limited to this machine.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from collections.abc import Sequence
@@ -198,7 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 1 <= args.samples <= 100:
         print(f"[demo] error: --samples must be in [1, 100], got {args.samples}", file=sys.stderr)
         return 2
-    domain = args.domain_id if args.domain_id is not None else claim_domain_id(10 + os.getpid() % 90)
+    domain = args.domain_id if args.domain_id is not None else claim_domain_id()
     env = ros_env(domain)
     options = SceneOptions(mug_seed=args.mug_seed)
     view = render_scene(options)

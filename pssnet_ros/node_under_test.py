@@ -12,7 +12,6 @@ through this one class.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -39,7 +38,7 @@ class NodeUnderTest:
     def __init__(self, domain: int | None = None, *, state: str | None = None, timeout: float = 180.0,
                  env: Mapping[str, str] | None = None, client_name: str = "node_under_test_client",
                  echo: bool = False, **params: Any) -> None:
-        self.domain = claim_domain_id(10 + os.getpid() % 90) if domain is None else domain
+        self.domain = claim_domain_id() if domain is None else domain
         self.params = params
         self.state = state or ("unconfigured" if params.get("autostart") is False else "active")
         self.timeout = timeout

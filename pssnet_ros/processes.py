@@ -152,14 +152,18 @@ def free_domain_id(preferred: int, low: int = 10, high: int = 99) -> int:
     raise RuntimeError(f"every ROS domain in [{low}, {high}] is in use on this machine")
 
 
-def claim_domain_id(preferred: int, low: int = 10, high: int = 99) -> int:
+def claim_domain_id(preferred: int | None = None, low: int = 10, high: int = 99) -> int:
     """:func:`free_domain_id`, claimed for the rest of this process's life: no other process's
-    :func:`free_domain_id` or :func:`claim_domain_id` returns it meanwhile, nor this process's again.
+    :func:`free_domain_id` or :func:`claim_domain_id` returns it meanwhile, nor this process's again. The search
+    starts at ``preferred``, by default at a domain derived from this process's id (so that concurrent runs
+    start apart).
 
     Why a claim and not the ports alone: a test session picks the domains of all its modules when it collects
     them, minutes before their nodes bind any port, and a second session on the machine saw those domains as
     free (two nodes answered one test's calls: node-test loop and CI run side by side).
     """
+    if preferred is None:
+        preferred = low + os.getpid() % (high - low + 1)
     DOMAIN_CLAIMS_DIR.mkdir(exist_ok=True)
     with contextlib.suppress(OSError):  # the first creator opens the folder to every user of the machine
         DOMAIN_CLAIMS_DIR.chmod(0o1777)
