@@ -271,7 +271,7 @@ class CheckedSampler:
         counts = self.sampler_config.proposal_counts(int(num_samples), self.has_box_latent)
         generator = torch.Generator().manual_seed(int(seed))
         t0 = time.perf_counter()
-        probs = self.propose(x, counts, generator, float(temperature)).numpy()
+        probs = self.propose(x, counts, generator, float(temperature)).cpu().numpy()
         t1 = time.perf_counter()
         occupancy = probs > 0.5
         check = GridCheck.prepare(known_occupied, known_free, pose, self.sampler_config.delta)
