@@ -312,3 +312,12 @@ def test_training_inference_packages_import_without_open3d_trimesh_cv2_rclpy():
             "print(bad); sys.exit(1 if bad else 0)")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_command_line_builds_without_the_renderer_and_shape_generators():
+    # `pssnet train` must run on a GPU machine without open3d or manifold3d (the lent ones have neither).
+    code = ("import sys; from pssnet_core.cli import build_parser; build_parser(); "
+            "bad = [m for m in ('open3d', 'trimesh', 'manifold3d', 'mujoco', 'rclpy') if m in sys.modules]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr

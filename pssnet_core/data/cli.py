@@ -7,10 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from pssnet_core.data.datasets import SCALES
-from pssnet_core.geometry import ObservationError
+from pssnet_core.data import SCALES
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
-from pssnet_core.shapes import ShapeError
 
 
 def _build(args: argparse.Namespace) -> int:
@@ -59,7 +57,7 @@ def _guarded(handler):
     def run(args: argparse.Namespace) -> int:
         try:
             return handler(args)
-        except (ValueError, ObservationError, ShapeError) as error:  # DatasetError & co. are ValueErrors
+        except ValueError as error:  # DatasetError, ObservationError, ShapeError & co. are ValueErrors
             print(f"pssnet dataset: error: {error}", file=sys.stderr)
             return 2
     return run

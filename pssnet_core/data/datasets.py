@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from pssnet_core.data import SCALES
 from pssnet_core.data.scenes import (
     CROP_MARGIN_PX,
     ObjectScene,
@@ -80,7 +81,6 @@ DEFAULT_OBJECTS: dict[tuple[str, str], int] = {
     ("mugs", "test"): 12, ("ycb_narrow", "test"): 12, ("ycb_wide", "test"): 12,
     ("mugs", "val"): 6, ("ycb", "val"): 16,
 }
-SCALES = ("default", "large", "broad")
 BROAD_MUG_SLIT_M = (0.03, 0.3)  # broad mugs: a random slit, wider than the mug in about two views of three
 LARGE_TRAIN_OBJECTS = 20_000  # per family group (mugs; ycb), see the module docstring
 LARGE_TRAIN_VIEWS = 4
