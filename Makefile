@@ -4,19 +4,19 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 # Discovery stays on loopback; the Fast DDS profile enlarges shared memory for image topics.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
-export FASTRTPS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_profile.xml
+export FASTRTPS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/pssnet_ros/config/fastdds_profile.xml
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup demo test test-slow test-py312 lint colcon clean datasets train-all results results-shipped oof-data oof-ambiguity
+.PHONY: setup demo test test-slow test-py312 lint colcon colcon-test clean datasets train-all results results-shipped oof-data oof-ambiguity
 
 setup:
 	@bash scripts/setup.sh
 
 demo: setup
-	$(PY) -m pssnet_ros.demo --out demo_output
+	$(PY) -m pssnet_testing.demo --out demo_output
 
 lint: setup
-	$(VENV)/bin/ruff check pssnet_core pssnet_ros test benchmarks scripts launch
+	$(VENV)/bin/ruff check pssnet_core pssnet_ros pssnet_testing test benchmarks scripts
 
 # pytest exits 5 when it collects no test: that is a failure here, like any other non-zero exit.
 test: lint
@@ -30,10 +30,19 @@ test-slow: setup
 test-py312:
 	bash scripts/test_py312.sh
 
-# Builds both packages with colcon, as on a regular ROS 2 workspace (install/ appears at the root).
+# Builds the four packages with colcon, as in a ROS 2 workspace whose src/ holds this repository (there a plain
+# `colcon build` finds them; here the base paths keep colcon out of .venv and data/). install/ appears at the root.
+COLCON_PACKAGES := pssnet_interfaces pssnet_core pssnet_ros pssnet_testing
 colcon: setup
 	source $(VENV)/bin/activate && CMAKE_PREFIX_PATH=$(CURDIR)/$(VENV) AMENT_PREFIX_PATH=$(CURDIR)/$(VENV) \
-	  colcon build --base-paths . msg_schemas --cmake-args -G Ninja -DPython3_EXECUTABLE=$(CURDIR)/$(PY) -DBUILD_TESTING=OFF
+	  colcon build --base-paths $(COLCON_PACKAGES) --cmake-args -G Ninja -DPython3_EXECUTABLE=$(CURDIR)/$(PY) \
+	  -DBUILD_TESTING=OFF
+
+# Each package's tests (the files its pytest.ini names: together, the whole suite) against the install, as
+# `colcon test` runs them in a workspace: about as long as `make test`.
+colcon-test: colcon
+	source $(VENV)/bin/activate && source install/setup.bash && \
+	  colcon test --base-paths $(COLCON_PACKAGES) && colcon test-result --verbose
 
 clean:
 	rm -rf build install log
@@ -50,6 +59,7 @@ TRAIN_STEPS ?=
 # EVAL_OBSERVATIONS=48 (48 evenly spaced references per set: ~30 min, its own plausible sets included).
 EVAL_OBSERVATIONS ?= 864
 MODELS := pssnet vae vae_gan recgan
+SHIPPED := pssnet_core/pssnet_core/checkpoints/default_pssnet_32.pt
 PSSNET := $(VENV)/bin/pssnet
 
 datasets: setup
@@ -74,9 +84,9 @@ results: setup
 	  --checkpoints $(RUNS)/pssnet32/best.pt,$(RUNS)/vae32/best.pt,$(RUNS)/vae_gan32/best.pt,$(RUNS)/recgan32/best.pt \
 	  --data $(DATA)/test --samples 20 --out results/handles --no-progress
 
-# The shipped model (pssnet_core/checkpoints) on the same test sets, every view by default.
+# The shipped model (pssnet_core/pssnet_core/checkpoints) on the same test sets, every view by default.
 results-shipped: setup
-	$(PSSNET) evaluate --models pssnet_mix16 --checkpoints pssnet_core/checkpoints/default_pssnet_32.pt \
+	$(PSSNET) evaluate --models pssnet_mix16 --checkpoints $(SHIPPED) \
 	  --data $(DATA)/test --samples 100 --max-observations $(EVAL_OBSERVATIONS) --dense-mugs 1 --workers 2 \
 	  --out results/shipped --no-progress
 
@@ -89,7 +99,7 @@ oof-data: setup
 	$(PSSNET) dataset build --family oof --split test --out $(OOF_DATA) --grid 32 --workers 2
 
 oof-ambiguity: setup
-	$(PSSNET) ambiguity --models pssnet_mix16 --checkpoints pssnet_core/checkpoints/default_pssnet_32.pt \
+	$(PSSNET) ambiguity --models pssnet_mix16 --checkpoints $(SHIPPED) \
 	  --data $(OOF_DATA)/test --sets oof_mugs,oof_narrow --samples 20 --deltas 0.01,0.04 \
 	  --cache-dir $(OOF_DATA)/ambiguity_cache --out results/oof/ambiguity --threads 2 --no-progress
 
@@ -128,7 +138,6 @@ gap-data: setup
 # is pre-trained again first); then the mixture box head is re-fitted on the same data.
 BROAD_OBJECTS ?= 2000
 FT_STEPS ?= 2000
-SHIPPED := pssnet_core/checkpoints/default_pssnet_32.pt
 
 datasets-broad: setup
 	$(PSSNET) dataset build --family all --split train --scale broad --num-objects $(BROAD_OBJECTS) \

@@ -27,8 +27,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from pssnet_core.bench import cpu_kind
 from pssnet_core.models.base import PRECISIONS, cpu_has_fast_bf16
-from pssnet_ros.processes import cpu_kind
 
 HERE = Path(__file__).resolve().parent
 SHIPPED_MODEL = HERE.parent / "pssnet_core" / "checkpoints" / "default_pssnet_32.pt"

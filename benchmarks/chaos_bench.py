@@ -1,4 +1,4 @@
-"""Chaos benchmark of completion_node over real DDS; the scenarios are pssnet_ros.chaos's.
+"""Chaos benchmark of completion_node over real DDS; the scenarios are pssnet_testing.chaos's.
 
 (a) kill -9 of the node in the middle of a service call (``--repeats`` times): how long the client waits
     (its timeout), whether DDS tells it the server is gone and when, how fast a restarted node serves, and
@@ -32,15 +32,14 @@ from pathlib import Path
 import numpy as np
 from pssnet_interfaces.srv import SampleCompletions
 
-from pssnet_ros import chaos
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import (
-    SHM_GRACE_S,
+from pssnet_core.bench import cpu_kind
+from pssnet_ros.shm import SHM_GRACE_S, clean_stale_shm
+from pssnet_testing import chaos
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import (
     RosProcess,
     claim_domain_id,
-    clean_stale_shm,
-    cpu_kind,
     ros_env,
     shm_files,
     stale_shm_files,
@@ -150,7 +149,7 @@ def stalled_subscribers(args: argparse.Namespace, domain: int) -> list[dict]:
     try:
         process = node.start()
         with RosClient(domain, "chaos_bench_d") as ros, \
-                RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", str(args.camera_rate)], env,
+                RosProcess.python_module("pssnet_testing.synthetic_camera", ["--rate", str(args.camera_rate)], env,
                                          name="camera") as camera:
             listener = chaos.CompletionsListener(ros)
             camera.wait_for(r"publishing", 120)
@@ -181,7 +180,7 @@ def transitions_mid_work(args: argparse.Namespace, domain: int) -> list[dict]:
             for work in chaos.WORK_KINDS:
                 continuous = work == "topics"
                 if continuous:
-                    camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"],
+                    camera = RosProcess.python_module("pssnet_testing.synthetic_camera", ["--rate", "10"],
                                                       ros_env(domain), name="camera")
                     camera.wait_for(r"publishing", 60)
                     assert ros.set_parameters(continuous=True)[0].successful

@@ -39,11 +39,12 @@ from typing import Any
 
 import numpy as np
 
+from pssnet_core.bench import cpu_kind
 from pssnet_core.data.scenes import RenderedView
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import RosProcess, claim_domain_id, cpu_kind
-from pssnet_ros.synthetic_camera import FRAME_ID, SceneOptions, render_scene
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import RosProcess, claim_domain_id
+from pssnet_testing.synthetic_camera import FRAME_ID, SceneOptions, render_scene
 
 #: requests or messages between two progress lines (with the node's RSS)
 PROGRESS_EVERY = 1000

@@ -1,6 +1,6 @@
 """Grasp benchmark: candidate generation and scoring of 500 candidates x 20 completions at 32^3 and 64^3.
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/grasp_bench.py [--candidates 500] [--completions 20]
+    .venv/bin/python benchmarks/grasp_bench.py [--candidates 500] [--completions 20]
         [--repeats 21] [--sizes 32 64] [--baseline REV]
 
 Scoring cost does not depend on how good the candidates are, so the scored candidates are grasps of the
@@ -36,9 +36,9 @@ from types import ModuleType
 import numpy as np
 
 import pssnet_core.grasps as current
+from pssnet_core.bench import cpu_kind
 from pssnet_core.geometry import GridConfig
 from pssnet_core.grasps import GraspCandidates, GraspConfig, approach_orientations
-from pssnet_ros.processes import cpu_kind
 
 TARGET_MS = 30.0
 
@@ -69,14 +69,19 @@ def random_candidates(occ: np.ndarray, count: int, config: GraspConfig, voxel: f
 
 
 def baseline_package(rev: str, into: Path) -> ModuleType:
-    """``pssnet_core/grasps`` at git revision ``rev``, importable as ``grasps_baseline`` (its own modules)."""
+    """The grasp package at git revision ``rev``, importable as ``grasps_baseline`` (its own modules): in
+    pssnet_core/pssnet_core/grasps, or pssnet_core/grasps at revisions before the repository held packages."""
     root = Path(__file__).resolve().parents[1]
-    archive = subprocess.run(["git", "-C", str(root), "archive", rev, "pssnet_core/grasps"], check=True,
-                             capture_output=True).stdout
-    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+    for folder in ("pssnet_core/pssnet_core/grasps", "pssnet_core/grasps"):
+        archive = subprocess.run(["git", "-C", str(root), "archive", rev, folder], capture_output=True)
+        if archive.returncode == 0:
+            break
+    else:
+        raise SystemExit(f"no grasp package at {rev}: {archive.stderr.decode().strip()}")
+    with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
         tar.extractall(into, filter="data")
     package = into / "grasps_baseline"
-    (into / "pssnet_core" / "grasps").rename(package)
+    (into / folder).rename(package)
     for path in package.glob("*.py"):  # its modules import each other by absolute name
         path.write_text(path.read_text().replace("pssnet_core.grasps", "grasps_baseline"))
     sys.path.insert(0, str(into))

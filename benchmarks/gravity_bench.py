@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pssnet_core.bench import cpu_kind
 from pssnet_core.data.scenes import Slit, ground_truth_occupancy, render_view
 from pssnet_core.pipeline import CompletionPipeline, PipelineConfig
 from pssnet_core.shapes import make_shape, split_seeds
-from pssnet_ros.processes import cpu_kind
 
 LEVEL_CAMERA_UP = PipelineConfig().up_vector  # the node's default: a level camera
 

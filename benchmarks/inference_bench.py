@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pssnet_core.bench import cpu_kind
 from pssnet_core.inference import Completer
 from pssnet_core.models import PRECISIONS, build_model, default_config
 from pssnet_core.models.checkpoint import load_checkpoint
 from pssnet_core.models.networks import BlockConv3d, BlockDeconv3d
-from pssnet_ros.processes import cpu_kind
 
 
 def _observation(grid: int, seed: int = 0) -> np.ndarray:

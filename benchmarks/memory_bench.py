@@ -12,7 +12,7 @@ Fast DDS' shared-memory segments in /dev/shm, the mapped libraries), and the gro
 baseline (target: < 5 %). ``--env KEY=VALUE`` sets a variable for the node only (e.g. ``MALLOC_ARENA_MAX=2``),
 to tell which part of the stack holds the memory.
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/memory_bench.py [--malformed 2000] [--valid 200] [--idle 60]
+    .venv/bin/python benchmarks/memory_bench.py [--malformed 2000] [--valid 200] [--idle 60]
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 from fuzz_bench import REFUSAL, REQUEST_FAMILIES, Fuzzer, rss_kib
 
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import cpu_kind
-from pssnet_ros.synthetic_camera import SceneOptions, render_scene
+from pssnet_core.bench import cpu_kind
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.synthetic_camera import SceneOptions, render_scene
 
 HUGE = (3000, 4000)  # rows, columns: a 12-megapixel depth image
 

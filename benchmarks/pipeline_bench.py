@@ -8,8 +8,8 @@ per setting, the checked / posterior ratio per device and each device's speed-up
 Rendering the views needs open3d; a machine without it (the lent GPU machines) reads them from a file written
 on one with it:
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/pipeline_bench.py --write-views views.npz
-    PYTHONPATH=$PWD python3 benchmarks/pipeline_bench.py --views views.npz --devices cuda cpu [--threads 2]
+    .venv/bin/python benchmarks/pipeline_bench.py --write-views views.npz
+    PYTHONPATH=$PWD/pssnet_core python3 benchmarks/pipeline_bench.py --views views.npz --devices cuda cpu [--threads 2]
         [--precision auto|fp32|bf16] [--repeats 10] [--samples 20] [--json out.json]
 """
 
@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pssnet_core.bench import cpu_kind
 from pssnet_core.geometry import CameraIntrinsics
 from pssnet_core.pipeline import CompletionPipeline, PipelineConfig
 from pssnet_core.sampling import SAMPLERS
-from pssnet_ros.processes import cpu_kind
 
 STEPS = ("observe", "network", "centres", "grasps", "total")
 

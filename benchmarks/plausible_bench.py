@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "pssnet_core"))  # pssnet_core, also without a venv
 
 from pssnet_core.evaluation.observation_model import MultiDeltaView  # noqa: E402
 from pssnet_core.evaluation.plausible import (  # noqa: E402

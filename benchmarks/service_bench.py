@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import claim_domain_id, stale_shm_files
-from pssnet_ros.synthetic_camera import SceneOptions, render_scene
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import claim_domain_id, stale_shm_files
+from pssnet_testing.synthetic_camera import SceneOptions, render_scene
 
 # Parts 1 and 3 measure the node's overheads around one network pass: the posterior sampler, whatever the default.
 POSTERIOR = "posterior"

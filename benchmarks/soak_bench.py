@@ -27,13 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from pssnet_ros import chaos
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import (
+from pssnet_core.bench import cpu_kind
+from pssnet_testing import chaos
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import (
     RosProcess,
     claim_domain_id,
-    cpu_kind,
     cpu_seconds,
     machine_cpu,
     ros_env,
@@ -92,7 +92,7 @@ def soak(args: argparse.Namespace, ros: RosClient, node: RosProcess, domain: int
     listener = chaos.CompletionsListener(ros)
     grasps = GraspsListener(ros)
     minutes: list[Minute] = []
-    with RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", str(args.rate)], ros_env(domain),
+    with RosProcess.python_module("pssnet_testing.synthetic_camera", ["--rate", str(args.rate)], ros_env(domain),
                                   name="camera") as camera:
         camera.wait_for(r"publishing", 120)
         wait_until(lambda: len(listener) > 0, 120, "a first completion")

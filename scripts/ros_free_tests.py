@@ -28,7 +28,7 @@ def is_ros(module: str) -> bool:
 def source_of(module: str) -> Path | None:
     """The repository file of a module (package, submodule, or a helper beside the tests), or None."""
     parts = module.split(".")
-    for base in (ROOT, TEST):
+    for base in (ROOT / "pssnet_core", ROOT / "pssnet_ros", ROOT / "pssnet_testing", TEST):
         path = base.joinpath(*parts)
         for candidate in (path.with_suffix(".py"), path / "__init__.py"):
             if candidate.is_file():

@@ -1,4 +1,4 @@
-"""Writes test/data/rosdep_keys.yaml: the rosdistro entries of every dependency the two package.xml files name.
+"""Writes test/data/rosdep_keys.yaml: the rosdistro entries of every dependency the packages' package.xml files name.
 
 Usage (ROSDISTRO: a clone of github.com/ros/rosdistro, bare or not; REV: the commit to read, default HEAD):
 
@@ -19,7 +19,8 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGE_XMLS = (ROOT / "package.xml", ROOT / "msg_schemas" / "package.xml")
+#: one package per folder of the repository root (pssnet_core, pssnet_interfaces, pssnet_ros, pssnet_testing)
+PACKAGE_XMLS = tuple(sorted(ROOT.glob("*/package.xml")))
 DEPEND_TAGS = ("depend", "build_depend", "buildtool_depend", "build_export_depend", "exec_depend", "test_depend",
                "doc_depend")
 ROSDEP_FILES = ("rosdep/base.yaml", "rosdep/python.yaml")
@@ -91,7 +92,7 @@ def extract(repo: Path, rev: str) -> tuple[dict, list[str]]:
 
 
 HEADER = """\
-# The rosdistro entries of every dependency named in package.xml and msg_schemas/package.xml: rosdep keys
+# The rosdistro entries of every dependency named in the packages' package.xml files (*/package.xml): rosdep keys
 # (rosdep/base.yaml, rosdep/python.yaml; the Ubuntu and Debian rules only) and the ROS packages the {distro}
 # distribution releases (package -> release repository). test/test_package_xml.py fails when a package.xml
 # names a dependency that is not here, or a key that resolves to nothing on the release platforms.

@@ -61,4 +61,6 @@ EOF
 
 mapfile -t files < <("$VENV/bin/python" scripts/ros_free_tests.py)
 say "${#files[@]} ROS-free test files"
-PYTHONPATH=$ROOT exec "$VENV/bin/python" -m pytest -q -m "not slow and not ros" "$@" "${files[@]}"
+# The packages from their folders (this venv has no editable installs).
+export PYTHONPATH=$ROOT/pssnet_core:$ROOT/pssnet_ros:$ROOT/pssnet_testing
+exec "$VENV/bin/python" -m pytest -q -m "not slow and not ros" "$@" "${files[@]}"

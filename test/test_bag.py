@@ -28,12 +28,12 @@ from pssnet_ros.bag import (
     node_parameters,
     process_bag,
     read_params_file,
-    write_demo_bag,
 )
 from pssnet_ros.bag_cli import register
 from pssnet_ros.completion_io import OUTPUT_TOPICS, output_messages, stamp_ns
 from pssnet_ros.conversions import pointcloud2_to_numpy
-from pssnet_ros.synthetic_camera import FRAME_ID, SceneOptions, render_scene, view_messages
+from pssnet_testing.demo import write_demo_bag
+from pssnet_testing.synthetic_camera import FRAME_ID, SceneOptions, render_scene, view_messages
 
 T0_NS = 1_700_000_000_000_000_000
 PERIOD_NS = 200_000_000  # the synthetic camera's 5 Hz

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from test_node_helpers import domain_for
 
-from pssnet_ros.processes import ros_env
+from pssnet_testing.processes import ros_env
 
 pytestmark = pytest.mark.ros
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "fuzz_bench.py"

@@ -6,7 +6,7 @@ the grasp code. Compared exactly: candidates (grid frame), widths, scores, holds
 per-completion check of 500 scored candidates (benchmark-style ones plus some at random rotations, partly
 outside the grid). Re-record only when the grasp rules change on purpose::
 
-    PYTHONPATH=$PWD .venv/bin/python test/test_grasps_reference.py
+    .venv/bin/python test/test_grasps_reference.py
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""launch/completion.launch.py as far as this machine can check it: the ROS 2 `launch` packages have no wheels.
+"""pssnet_ros/launch/completion.launch.py as far as this machine can check it: `launch` and `launch_ros` have no
+wheels.
 
 The file runs against recording stand-ins for launch / launch_ros (each action and substitution keeps its
 arguments), so the test sees exactly what `ros2 launch` would be given: the executable and node name, the
@@ -19,7 +20,8 @@ from pssnet_ros.completion_io import STREAMS
 from pssnet_ros.params import SPECS, check_values
 
 ROOT = Path(__file__).resolve().parents[1]
-LAUNCH_FILE = ROOT / "launch" / "completion.launch.py"
+PACKAGE = ROOT / "pssnet_ros"
+LAUNCH_FILE = PACKAGE / "launch" / "completion.launch.py"
 
 
 class Recorded:
@@ -58,7 +60,7 @@ def test_the_node_its_parameters_and_remappings(description):
     assert len(nodes) == 1
     node = nodes[0].kwargs
     assert node["package"] == "pssnet_ros" and node["name"] == "pssnet"
-    assert f"{node['executable']} = pssnet_ros.completion_node:main" in (ROOT / "setup.py").read_text()
+    assert f"{node['executable']} = pssnet_ros.completion_node:main" in (PACKAGE / "setup.py").read_text()
     # Every input the node subscribes to is remapped by a launch argument of the same name, and nothing else.
     remapped = {source: target.args[0] for source, target in node["remappings"]}
     assert set(remapped) == set(STREAMS) and all(remapped[s] == s for s in STREAMS)
@@ -77,8 +79,8 @@ def test_the_node_its_parameters_and_remappings(description):
 
 
 def test_the_parameter_file_it_installs_is_valid_for_the_node():
-    values = yaml.safe_load((ROOT / "config" / "completion_node.yaml").read_text())["/**"]["ros__parameters"]
+    values = yaml.safe_load((PACKAGE / "config" / "completion_node.yaml").read_text())["/**"]["ros__parameters"]
     assert check_values(values) is None
-    setup = (ROOT / "setup.py").read_text()
+    setup = (PACKAGE / "setup.py").read_text()
     assert '(f"share/{PACKAGE}/launch", glob("launch/*.launch.py"))' in setup
     assert '(f"share/{PACKAGE}/config", glob("config/*"))' in setup

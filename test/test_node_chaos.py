@@ -1,7 +1,7 @@
 """Chaos over real DDS: kill -9 of the node and of a client in the middle of a call, stale Fast DDS
 shared memory, stalled subscribers of /pssnet/completions.
 
-The scenarios live in :mod:`pssnet_ros.chaos`; ``benchmarks/chaos_bench.py`` runs them longer and prints the
+The scenarios live in :mod:`pssnet_testing.chaos`; ``benchmarks/chaos_bench.py`` runs them longer and prints the
 numbers (RELIABILITY.md). These are the short versions, each asserting what must hold. Nothing waits a guessed
 time: every wait is on a condition (a log line, a counter of the node, a file's state) with a deadline.
 """
@@ -21,15 +21,13 @@ from pathlib import Path
 import pytest
 from test_node_helpers import domain_for, node_checkpoint
 
-from pssnet_ros import chaos
-from pssnet_ros.client import RosClient, wait_until
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import (
+from pssnet_ros.shm import SHM_DIR, SHM_GRACE_S, clean_stale_shm
+from pssnet_testing import chaos
+from pssnet_testing.client import RosClient, wait_until
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import (
     LOCK_SUFFIX,
-    SHM_DIR,
-    SHM_GRACE_S,
     RosProcess,
-    clean_stale_shm,
     ros_env,
     shm_files,
     stale_shm_files,
@@ -117,9 +115,9 @@ def test_start_up_cleanup_removes_a_dead_participants_files_and_keeps_a_live_one
     """What clean_stale_shm (run by every node start) removes: files of a participant killed with -9, once
     older than the grace period; never a live participant's, a young file, a segment whose lock someone holds,
     or a port whose mutex someone holds."""
-    dead = RosProcess.python_module("pssnet_ros.chaos", ["subscriber", "--mode", "spinning"],
+    dead = RosProcess.python_module("pssnet_testing.chaos", ["subscriber", "--mode", "spinning"],
                                     ros_env(domain_for(13)), name="doomed_participant")
-    live = RosProcess.python_module("pssnet_ros.chaos", ["subscriber", "--mode", "spinning"],
+    live = RosProcess.python_module("pssnet_testing.chaos", ["subscriber", "--mode", "spinning"],
                                     ros_env(domain_for(14)), name="live_participant")
     token = secrets.token_hex(8)
     young = fake_segment(f"fastrtps_{token}")
@@ -178,7 +176,7 @@ def test_stalled_subscribers_stall_neither_completions_nor_the_service(node, ros
     env = ros_env(DOMAIN)
     assert all(r.successful for r in ros.set_parameters(continuous=True))
     listener = chaos.CompletionsListener(ros)
-    camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"], env, name="camera")
+    camera = RosProcess.python_module("pssnet_testing.synthetic_camera", ["--rate", "10"], env, name="camera")
     try:
         camera.wait_for(r"publishing", TIMEOUT)
         wait_until(lambda: len(listener) > 0, TIMEOUT, "a first completion at the normal subscriber")

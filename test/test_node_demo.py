@@ -1,4 +1,4 @@
-"""The README's first command (python -m pssnet_ros.demo) runs end to end and exits 0 on its own."""
+"""The README's first command (python -m pssnet_testing.demo) runs end to end and exits 0 on its own."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from sensor_msgs.msg import PointCloud2
 from test_node_helpers import domain_for, node_checkpoint
 
 from pssnet_ros.bag import BagToolConfig, node_parameters, process_bag
-from pssnet_ros.processes import ros_env
-from pssnet_ros.synthetic_camera import SceneOptions, render_scene
+from pssnet_testing.processes import ros_env
+from pssnet_testing.synthetic_camera import SceneOptions, render_scene
 
 pytestmark = pytest.mark.ros
 
@@ -26,7 +26,7 @@ def test_demo_writes_the_figure_prints_the_summary_and_exits_0(tmp_path):
     model = [] if trained else ["--model", str(checkpoint)]  # the shipped model, as the README runs it
     out = tmp_path / "demo"
     domain = domain_for(5)
-    result = subprocess.run([sys.executable, "-m", "pssnet_ros.demo", "--out", str(out), "--samples", "6",
+    result = subprocess.run([sys.executable, "-m", "pssnet_testing.demo", "--out", str(out), "--samples", "6",
                              "--calls", "2", "--domain-id", str(domain), *model],
                             env=ros_env(domain), cwd=tmp_path, capture_output=True, text=True, timeout=300)
     output = result.stdout + result.stderr

@@ -1,7 +1,7 @@
 """Shared helpers of the node tests: a rendered mug scene, checkpoints, messages and node arguments.
 
 (Named test_node_* so it belongs to the node area; it holds no tests itself. The rclpy client in this process
-is :class:`pssnet_ros.client.RosClient`, the one the demo and the benchmark use.)
+is :class:`pssnet_testing.client.RosClient`, the one the demo and the benchmark use.)
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from pssnet_core.models import build_model, default_config
 from pssnet_core.models.checkpoint import save_checkpoint
 from pssnet_core.models.integrity import canonical_input
 from pssnet_core.shapes import make_shape
-from pssnet_ros.processes import claim_domain_id
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32, "flow_hidden": 32, "flow_couplings": 4}
 
@@ -26,7 +25,10 @@ TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32, "flow_hidden": 32, "flow_co
 def domain_for(module_index: int) -> int:
     """A ROS_DOMAIN_ID for one test module (10..99), claimed for this test session: one that no DDS participant
     on this machine uses and no other process has claimed, searched from a start that differs between modules
-    and runs."""
+    and runs. (Imported here: the ROS-free tests of pssnet_core use this module's scenes and checkpoints
+    without the harness package.)"""
+    from pssnet_testing.processes import claim_domain_id
+
     return claim_domain_id(10 + (os.getpid() * 5 + module_index) % 90)
 
 

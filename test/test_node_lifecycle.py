@@ -20,12 +20,12 @@ from test_node_helpers import (
     tiny_checkpoint,
 )
 
-from pssnet_ros import chaos
-from pssnet_ros.client import NODE, SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.completion_node import CANCELLED_MESSAGE, Status
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import RosProcess, ros_env
+from pssnet_testing import chaos
+from pssnet_testing.client import NODE, SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import RosProcess, ros_env
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(11)
@@ -170,7 +170,7 @@ def test_transitions_while_the_node_works_answer_the_call_and_keep_the_node(chec
         node.start()
         for work in chaos.WORK_KINDS:
             if work == "topics":
-                camera = RosProcess.python_module("pssnet_ros.synthetic_camera", ["--rate", "10"],
+                camera = RosProcess.python_module("pssnet_testing.synthetic_camera", ["--rate", "10"],
                                                   ros_env(node.domain), name="camera")
                 camera.wait_for(r"publishing", 60)
                 assert node.ros.set_parameters(continuous=True)[0].successful

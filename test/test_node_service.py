@@ -23,10 +23,10 @@ from test_node_helpers import (
 )
 
 from pssnet_core.geometry import CameraIntrinsics
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import stale_shm_files
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import stale_shm_files
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(1)

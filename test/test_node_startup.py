@@ -13,7 +13,7 @@ from test_integrity import bench
 from test_node_helpers import domain_for, tiny_checkpoint
 
 from pssnet_core.inference import DEFAULT_CHECKPOINT
-from pssnet_ros.processes import RosProcess, configure_this_process, ros_env, ros_param_args
+from pssnet_testing.processes import RosProcess, configure_this_process, ros_env, ros_param_args
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(3)

@@ -25,11 +25,11 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from test_node_helpers import domain_for, node_checkpoint, render_mug_scene, scene_messages
 
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_ros.completion_node import WARN_THROTTLE_S
 from pssnet_ros.conversions import numpy_to_image, pointcloud2_to_numpy
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import stale_shm_files
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import stale_shm_files
 
 pytestmark = pytest.mark.ros
 DOMAIN = domain_for(2)

@@ -1,8 +1,15 @@
-"""package.xml declares every ROS package the code imports (rosdep and colcon resolve from it, not from pip)."""
+"""Each package.xml declares what that package imports (rosdep and colcon resolve from them, not from pip).
+
+The repository holds four packages, one per folder: pssnet_core (ROS-free library), pssnet_ros (the node),
+pssnet_testing (harness, synthetic camera, demo) and pssnet_interfaces (messages). Their Python modules are
+scanned here; each package's tests are the files its pytest.ini names (test/test_colcon.py checks that every
+test file belongs to exactly one package).
+"""
 
 from __future__ import annotations
 
 import ast
+import configparser
 import importlib.util
 import re
 import subprocess
@@ -14,49 +21,87 @@ import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
+PYTHON_PACKAGES = ("pssnet_core", "pssnet_ros", "pssnet_testing")
+OWN = (*PYTHON_PACKAGES, "pssnet_interfaces")
 #: Declared though not imported by name: what needs them.
 INDIRECT = {"lifecycle_msgs": "rclpy.lifecycle (the managed node) imports it"}
 IMPORT = re.compile(r"^\s*(?:from|import)\s+([A-Za-z_][A-Za-z0-9_]*)", re.MULTILINE)
 
 
 def is_ros_package(module: str) -> bool:
-    return (module in ("rclpy", "launch", "launch_ros", "ament_index_python")
+    """A ROS package (rosdep and colcon know it by this name): ROS itself, a message package, or one of ours."""
+    return (module in ("rclpy", "launch", "launch_ros", "ament_index_python") or module in OWN
             or module.endswith(("_msgs", "_srvs", "_interfaces")))
 
 
-def imported_ros_packages(files: list[Path]) -> set[str]:
-    return {m for f in files for m in IMPORT.findall(f.read_text()) if is_ros_package(m)}
+def module_files(package: str) -> list[Path]:
+    """The Python files a package installs (pssnet_ros: also its launch file)."""
+    files = sorted((ROOT / package / package).rglob("*.py"))
+    return files + sorted((ROOT / package / "launch").glob("*.py"))
 
 
-def dependencies(kind: str) -> set[str]:
-    return {e.text for e in ET.parse(ROOT / "package.xml").getroot().iter(kind)}
+def package_test_files(package: str) -> list[Path]:
+    """The test files `colcon test` runs for a package (the testpaths of its pytest.ini), and test/conftest.py,
+    which pytest loads for each of them."""
+    ini = configparser.ConfigParser()
+    ini.read(ROOT / package / "pytest.ini")
+    files = {f for pattern in ini["pytest"]["testpaths"].split() for f in (ROOT / package).glob(pattern)}
+    return sorted(files | {ROOT / "test" / "conftest.py"})
 
 
-def test_every_imported_ros_package_is_declared():
-    runtime = imported_ros_packages(sorted((ROOT / "pssnet_ros").glob("*.py")) + sorted((ROOT / "launch").glob("*.py")))
-    assert {"rclpy", "diagnostic_msgs", "std_srvs", "launch_ros", "pssnet_interfaces"} <= runtime  # the scan works
-    exec_depends = dependencies("exec_depend")
-    assert runtime - exec_depends == set(), "imported by the package but not an exec_depend"
-    tests = imported_ros_packages(sorted((ROOT / "test").glob("*.py")))
-    assert tests - exec_depends - dependencies("test_depend") == set(), "imported by the tests but not declared"
+def imported_ros_packages(files: list[Path], exclude: str = "") -> set[str]:
+    return {m for f in files for m in IMPORT.findall(f.read_text()) if is_ros_package(m) and m != exclude}
 
 
-def test_core_imports_no_ros_package():
-    core = imported_ros_packages(sorted((ROOT / "pssnet_core").rglob("*.py")))
+def dependencies(package: str, *kinds: str) -> set[str]:
+    root = ET.parse(ROOT / package / "package.xml").getroot()
+    return {e.text.strip() for kind in kinds for e in root.iter(kind)}
+
+
+def test_the_packages_are_folders_of_the_root():
+    """colcon finds every package of a clone in ws/src; a package.xml at the root would hide the others."""
+    assert not (ROOT / "package.xml").exists()
+    assert {path.parent.name for path in ROOT.glob("*/package.xml")} == set(OWN)
+    for package in OWN:
+        assert ET.parse(ROOT / package / "package.xml").getroot().findtext("name") == package
+    for package in PYTHON_PACKAGES:
+        assert (ROOT / package / "resource" / package).is_file() and package_test_files(package)
+
+
+@pytest.mark.parametrize("package", PYTHON_PACKAGES)
+def test_every_imported_ros_package_is_declared(package):
+    modules = imported_ros_packages(module_files(package), exclude=package)
+    if package == "pssnet_ros":
+        assert {"rclpy", "diagnostic_msgs", "std_srvs", "launch_ros", "pssnet_interfaces", "pssnet_core"} <= modules
+    exec_depends = dependencies(package, "exec_depend")
+    assert modules - exec_depends == set(), "imported by the package but not an exec_depend"
+    tests = imported_ros_packages(package_test_files(package), exclude=package)
+    assert tests - exec_depends - dependencies(package, "test_depend") == set(), "imported by its tests, not declared"
+
+
+@pytest.mark.parametrize("package", PYTHON_PACKAGES)
+def test_declared_ros_packages_are_imported_or_launch_tools(package):
+    declared = {d for d in dependencies(package, "exec_depend") if is_ros_package(d)}
+    modules = imported_ros_packages(module_files(package), exclude=package)
+    assert declared - modules - set(INDIRECT) == set(), "declared but never imported: stale dependency"
+    tests = {d for d in dependencies(package, "test_depend") if is_ros_package(d)}
+    assert tests - imported_ros_packages(package_test_files(package)) == set(), "test_depend that no test imports"
+
+
+def test_the_import_graph_has_no_cycle():
+    """pssnet_core needs no ROS and none of the other packages; the node package never needs the harness, not
+    even for its tests (colcon orders packages by test dependencies too: that would be a cycle)."""
+    core = imported_ros_packages(module_files("pssnet_core"), exclude="pssnet_core")
     assert core == set(), f"pssnet_core must stay ROS-free, imports {core}"
-
-
-def test_declared_ros_packages_are_imported_or_launch_tools():
-    declared = {d for d in dependencies("exec_depend") if is_ros_package(d)}
-    runtime = imported_ros_packages(sorted((ROOT / "pssnet_ros").glob("*.py")) + sorted((ROOT / "launch").glob("*.py")))
-    assert declared - runtime - set(INDIRECT) == set(), "declared but never imported: stale dependency"
-    assert "from rclpy.lifecycle import" in (ROOT / "pssnet_ros" / "completion_node.py").read_text()
+    assert "pssnet_testing" not in imported_ros_packages(module_files("pssnet_ros"))
+    assert "pssnet_testing" not in imported_ros_packages(package_test_files("pssnet_ros"))
+    assert "pssnet_testing" not in dependencies("pssnet_ros", *DEPEND_TAGS)
+    assert "from rclpy.lifecycle import" in (ROOT / "pssnet_ros" / "pssnet_ros" / "completion_node.py").read_text()
 
 
 # ------------------------------------------------------------------------------- rosdep keys (rosdistro)
 #: The rosdistro entries of every name in the package.xml files (scripts/rosdep_extract.py writes it).
 ROSDISTRO = yaml.safe_load((ROOT / "test" / "data" / "rosdep_keys.yaml").read_text())
-PACKAGE_XMLS = (ROOT / "package.xml", ROOT / "msg_schemas" / "package.xml")
 DEPEND_TAGS = ("depend", "build_depend", "buildtool_depend", "build_export_depend", "exec_depend", "test_depend",
                "doc_depend")
 #: Python module -> the rosdep key that installs it.
@@ -84,14 +129,10 @@ RUNTIME_MODULES = ("pssnet_ros.completion_node", "pssnet_core.pipeline", "pssnet
                    "pssnet_core.models", "pssnet_core.sampling", "pssnet_core.support_plane", "pssnet_ros.bag")
 
 
-def all_dependencies(path: Path) -> dict[str, set[str]]:
+def all_dependencies(package: str) -> dict[str, set[str]]:
     """Dependency tag -> names, for one package.xml."""
-    root = ET.parse(path).getroot()
+    root = ET.parse(ROOT / package / "package.xml").getroot()
     return {tag: {e.text.strip() for e in root.iter(tag)} for tag in DEPEND_TAGS}
-
-
-def own_packages() -> set[str]:
-    return {ET.parse(path).getroot().findtext("name") for path in PACKAGE_XMLS}
 
 
 def resolves(rule: object, codename: str) -> bool:
@@ -109,8 +150,8 @@ def resolves(rule: object, codename: str) -> bool:
 
 def third_party_imports(files: list[Path]) -> set[str]:
     """Top-level modules the files import that are neither the standard library, ROS, nor this repository's."""
-    local = {f.stem for d in ("pssnet_core", "pssnet_ros", "launch", "test", "benchmarks", "scripts")
-             for f in (ROOT / d).rglob("*.py")} | {"pssnet_core", "pssnet_ros"}
+    local = {f.stem for d in (*PYTHON_PACKAGES, "test", "benchmarks", "scripts") for f in (ROOT / d).rglob("*.py")}
+    local |= set(OWN)
     modules = set()
     for f in files:
         for node in ast.walk(ast.parse(f.read_text())):
@@ -122,13 +163,16 @@ def third_party_imports(files: list[Path]) -> set[str]:
             if m not in sys.stdlib_module_names and m not in local and not is_ros_package(m) and m != "__future__"}
 
 
+def python_keys(package: str, kind: str) -> set[str]:
+    return {k for k in dependencies(package, kind) if k in ROSDISTRO["rosdep_keys"]}
+
+
 def test_every_dependency_is_a_rosdistro_key_or_released_package():
     keys, released = ROSDISTRO["rosdep_keys"], ROSDISTRO["released_packages"]
-    own = own_packages()
-    for path in PACKAGE_XMLS:
-        for tag, names in all_dependencies(path).items():
-            unknown = sorted(names - own - set(keys) - set(released))
-            assert not unknown, (f"{path.name} <{tag}> {unknown}: no rosdep key of rosdistro "
+    for package in OWN:
+        for tag, names in all_dependencies(package).items():
+            unknown = sorted(names - set(OWN) - set(keys) - set(released))
+            assert not unknown, (f"{package}/package.xml <{tag}> {unknown}: no rosdep key of rosdistro "
                                  f"{ROSDISTRO['rosdistro_commit'][:12]} nor a released {ROSDISTRO['distro']} package "
                                  "(see the header of test/data/rosdep_keys.yaml)")
 
@@ -143,40 +187,56 @@ def test_rosdep_keys_resolve_on_every_release_platform():
     assert resolves({"*": ["python3-torch"], "focal": None}, "noble") and resolves({"pip": {"packages": ["x"]}}, "")
 
 
-def test_every_third_party_import_has_a_key_or_is_known_to_have_none():
-    package = third_party_imports(sorted((ROOT / "pssnet_core").rglob("*.py"))
-                                  + sorted((ROOT / "pssnet_ros").glob("*.py")))
-    tests = third_party_imports(sorted((ROOT / "test").glob("*.py")))
-    assert {"torch", "open3d", "manifold3d"} <= package and {"pytest", "hypothesis"} <= tests  # the scan works
-    unmapped = (package | tests) - set(KEY_OF_MODULE) - NO_KEY
+@pytest.mark.parametrize("package", PYTHON_PACKAGES)
+def test_every_third_party_import_has_a_key_or_is_known_to_have_none(package):
+    modules, tests = third_party_imports(module_files(package)), third_party_imports(package_test_files(package))
+    if package == "pssnet_core":
+        assert {"torch", "open3d", "manifold3d"} <= modules and {"pytest", "hypothesis"} <= tests  # the scan works
+    unmapped = (modules | tests) - set(KEY_OF_MODULE) - NO_KEY
     assert not unmapped, f"imported, but neither in KEY_OF_MODULE (with its rosdep key) nor in NO_KEY: {unmapped}"
-    declared = dependencies("exec_depend") | dependencies("test_depend")
-    missing = {m: KEY_OF_MODULE[m] for m in package | tests if m in KEY_OF_MODULE and KEY_OF_MODULE[m] not in declared}
-    assert not missing, f"imported but its rosdep key is not declared: {missing}"
+    declared = dependencies(package, "exec_depend", "test_depend")
+    missing = {m: KEY_OF_MODULE[m] for m in modules | tests if m in KEY_OF_MODULE and KEY_OF_MODULE[m] not in declared}
+    assert not missing, f"{package} imports these, but their rosdep keys are not in its package.xml: {missing}"
+    stale = python_keys(package, "exec_depend") | python_keys(package, "test_depend")
+    stale -= {KEY_OF_MODULE[m] for m in modules | tests if m in KEY_OF_MODULE}
+    stale -= {"python3-pytest-timeout"}  # a pytest plugin (the `timeout` option of pytest.ini), never imported
+    assert not stale, f"{package} declares these, but neither its modules nor its tests import them: {stale}"
     for module in NO_KEY:
         assert not any(k.startswith(f"python3-{module}") for k in ROSDISTRO["rosdep_keys"]), module
 
 
+def test_the_harness_declares_what_it_runs_with():
+    """pssnet_testing is a tool package: every library its modules import is an exec_depend."""
+    needed = {KEY_OF_MODULE[m] for m in third_party_imports(module_files("pssnet_testing")) if m in KEY_OF_MODULE}
+    assert needed == python_keys("pssnet_testing", "exec_depend")
+
+
 @pytest.mark.skipif(importlib.util.find_spec("rclpy") is None, reason="needs rclpy (the node's imports)")
 def test_what_the_node_loads_is_an_exec_depend():
-    """Imports the node and `pssnet bag` in a fresh interpreter: the Python keys among the exec_depends are
-    exactly those of the modules they load (the rest of the package's libraries are test_depends)."""
+    """Imports the node and `pssnet bag` in a fresh interpreter: the Python keys among the exec_depends of
+    pssnet_core and pssnet_ros are exactly those of the modules each imports that the node loads (the rest of a
+    package's libraries are test_depends)."""
     code = (f"import importlib, sys\nfor m in {RUNTIME_MODULES!r}: importlib.import_module(m)\n"
             "print(' '.join(sorted({n.split('.')[0] for n in sys.modules})))")
     loaded = set(subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True,
                                 timeout=120).stdout.split())
     assert {"torch", "open3d", "cv2", "rosbags", "rclpy"} <= loaded
-    needed = {KEY_OF_MODULE[m] for m in loaded if m in KEY_OF_MODULE}
-    exec_keys = {k for k in dependencies("exec_depend") if k in ROSDISTRO["rosdep_keys"]}
-    assert needed - exec_keys == set(), "the node loads these, but they are not exec_depend"
-    assert exec_keys - needed == set(), "exec_depend, but neither the node nor `pssnet bag` loads it: test_depend?"
     assert not loaded & NO_KEY, f"the node loads modules without a rosdep key: {loaded & NO_KEY}"
+    assert "pssnet_testing" not in loaded
+    needed = {KEY_OF_MODULE[m] for m in loaded if m in KEY_OF_MODULE}
+    exec_keys = {}
+    for package in ("pssnet_core", "pssnet_ros"):
+        exec_keys[package] = python_keys(package, "exec_depend")
+        imports = {KEY_OF_MODULE[m] for m in third_party_imports(module_files(package)) & loaded if m in KEY_OF_MODULE}
+        assert imports - exec_keys[package] == set(), f"{package}: the node loads these, but they are not exec_depend"
+        assert exec_keys[package] - imports == set(), f"{package}: exec_depend, but the node does not load it"
+    assert needed == exec_keys["pssnet_core"] | exec_keys["pssnet_ros"], "loaded, but no package imports it"
 
 
 def test_license_file_matches_package_xml():
-    for path in PACKAGE_XMLS:  # each package carries its license file
-        assert ET.parse(path).getroot().findtext("license") == "BSD-3-Clause"
-        assert (path.parent / "LICENSE").read_text() == (ROOT / "LICENSE").read_text()
+    for package in OWN:  # each package carries its license file
+        assert ET.parse(ROOT / package / "package.xml").getroot().findtext("license") == "BSD-3-Clause"
+        assert (ROOT / package / "LICENSE").read_text() == (ROOT / "LICENSE").read_text()
     text = (ROOT / "LICENSE").read_text()
     assert text.startswith("BSD 3-Clause License\n") and "Copyright (c) 2026, PSSNet-ROS contributors" in text
     assert "Neither the name of the copyright holder nor the names of its" in text
@@ -207,7 +267,7 @@ def test_runtime_requirements_fit_an_apt_jazzy_robot():
     runtime, development = pins(ROOT / "requirements-runtime.txt"), pins(ROOT / "requirements.txt")
     assert runtime["numpy"].startswith("==1.26."), "Jazzy's message packages are built against numpy 1.x"
     assert not [name for name in runtime if name.startswith(NOT_RUNTIME)], "a ROS wheel or a development package"
-    exec_keys = {k for k in dependencies("exec_depend") if k in ROSDISTRO["rosdep_keys"]}
+    exec_keys = python_keys("pssnet_core", "exec_depend") | python_keys("pssnet_ros", "exec_depend")
     assert set(PIP_OF_KEY) == exec_keys, "PIP_OF_KEY must name the pip package of every Python exec_depend"
     assert set(runtime) == set(PIP_OF_KEY.values()), "requirements-runtime.txt is the exec_depends, by pip name"
     for name, spec in runtime.items():

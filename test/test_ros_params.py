@@ -22,7 +22,7 @@ from pssnet_ros.params import (
     pipeline_config,
 )
 
-CONFIG = Path(__file__).resolve().parents[1] / "config" / "completion_node.yaml"
+CONFIG = Path(__file__).resolve().parents[1] / "pssnet_ros" / "config" / "completion_node.yaml"
 
 
 def test_yaml_lists_every_parameter_with_its_default():

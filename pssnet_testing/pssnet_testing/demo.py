@@ -1,6 +1,6 @@
 """The README's first command: the completion node, a synthetic camera and a client, end to end over ROS 2.
 
-    python -m pssnet_ros.demo --out demo_output
+    python -m pssnet_testing.demo --out demo_output
 
 1. starts ``completion_node`` (the shipped model unless ``--model``) in its own process;
 2. starts ``synthetic_camera`` in another process: a mug on a table, its handle hidden, at a few Hz;
@@ -20,19 +20,38 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pssnet_ros.bag import write_demo_bag
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient
-from pssnet_ros.node_under_test import NodeUnderTest
-from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
-from pssnet_ros.synthetic_camera import SceneOptions, render_scene
+from pssnet_ros.bag import SENSOR_QOS, BagWriter
+from pssnet_ros.completion_io import STREAMS, outputs_from_response, stamp_ns
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient
+from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
+from pssnet_testing.synthetic_camera import SceneOptions, render_scene, view_messages
+
+if TYPE_CHECKING:
+    from pssnet_interfaces.srv import SampleCompletions
+
+    from pssnet_core.data.scenes import RenderedView
+
+
+def write_demo_bag(path: Path, view: RenderedView, response: SampleCompletions.Response) -> Path:
+    """Records one demo exchange: the camera's depth/mask/camera_info of the set the node completed (as the
+    synthetic camera sent them: same images, stamp and frame) and the node's answer as its four topics."""
+    header = response.header
+    log_ns = stamp_ns(header)
+    with BagWriter(path, overwrite=True) as writer:
+        for stream, message in zip(STREAMS, view_messages(view, "32FC1", header), strict=True):
+            writer.write(f"/{stream}", message, log_ns, SENSOR_QOS)
+        for topic, message in outputs_from_response(response).by_topic().items():
+            writer.write(topic, message, log_ns)
+    return path
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m pssnet_ros.demo", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m pssnet_testing.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("demo_output"), help="folder for the PNG")
     parser.add_argument("--model", default="", help="checkpoint (default: the shipped model)")
     parser.add_argument("--samples", type=int, default=20, help="completions to sample (default 20)")
@@ -213,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         node.start()
         node.close_client()  # only the readiness check used it; run_client has its own
         camera = RosProcess.python_module(
-            "pssnet_ros.synthetic_camera", ["--rate", str(args.rate), "--mug-seed", str(args.mug_seed)], env,
+            "pssnet_testing.synthetic_camera", ["--rate", str(args.rate), "--mug-seed", str(args.mug_seed)], env,
             name="synthetic_camera", echo=args.verbose)
         camera.wait_for(r"publishing mug", timeout=args.timeout)
         response, latencies = run_client(domain, args.samples, args.calls, args.timeout)

@@ -1,6 +1,6 @@
 """A synthetic depth camera: publishes a rendered mug (handle hidden) on the completion node's input topics.
 
-    python -m pssnet_ros.synthetic_camera --rate 5 [--qos best_effort|reliable] [--depth-encoding 16UC1]
+    python -m pssnet_testing.synthetic_camera --rate 5 [--qos best_effort|reliable] [--depth-encoding 16UC1]
 
 Publishes ``depth`` (32FC1 metres or 16UC1 millimetres), ``mask`` (mono8) and ``camera_info`` with one
 shared stamp per frame, in the frame ``camera_depth_optical_frame``. The scene is rendered once by

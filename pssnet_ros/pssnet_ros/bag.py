@@ -22,10 +22,9 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import yaml
-from pssnet_interfaces.srv import SampleCompletions
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.interfaces import Connection, Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
@@ -42,15 +41,10 @@ from pssnet_ros.completion_io import (
     complete_messages,
     load_pipeline,
     output_messages,
-    outputs_from_response,
     stamp_ns,
 )
 from pssnet_ros.params import check_values, defaults
 from pssnet_ros.sync import StampSynchronizer
-from pssnet_ros.synthetic_camera import view_messages
-
-if TYPE_CHECKING:  # write_demo_bag's view; the scenes need the shape libraries, `pssnet bag` does not
-    from pssnet_core.data.scenes import RenderedView
 
 GRASP_CANDIDATES_TYPE = "pssnet_interfaces/msg/GraspCandidates"
 #: message type each input stream must have
@@ -77,7 +71,7 @@ def ros_type_name(message: Any) -> str:
 
 def interface_definition(name: str = "GraspCandidates") -> str:
     """The .msg text of one pssnet_interfaces message: from the installed package share (a sourced ROS
-    workspace or this venv), else from this source tree's msg_schemas/."""
+    workspace or this venv), else from this source tree's pssnet_interfaces/."""
     shares = []
     try:
         from ament_index_python.packages import get_package_share_directory
@@ -85,7 +79,8 @@ def interface_definition(name: str = "GraspCandidates") -> str:
         shares.append(Path(get_package_share_directory("pssnet_interfaces")))
     except (ImportError, LookupError, OSError):  # not sourced: AMENT_PREFIX_PATH unset or without the package
         pass
-    shares += [Path(sys.prefix) / "share" / "pssnet_interfaces", Path(__file__).resolve().parents[1] / "msg_schemas"]
+    source = Path(__file__).resolve().parents[2] / "pssnet_interfaces"  # pssnet_ros/pssnet_ros/bag.py -> the root
+    shares += [Path(sys.prefix) / "share" / "pssnet_interfaces", source]
     for share in shares:
         path = share / "msg" / f"{name}.msg"
         if path.is_file():
@@ -406,19 +401,6 @@ def _complete(pipeline: CompletionPipeline, values: dict[str, Any], messages: di
     for topic, message in output_messages(result, header).by_topic().items():
         writer.write(topic, message, log_ns)
     summary.sets_completed += 1
-
-
-def write_demo_bag(path: Path, view: RenderedView, response: SampleCompletions.Response) -> Path:
-    """Records one demo exchange: the camera's depth/mask/camera_info of the set the node completed (as the
-    synthetic camera sent them: same images, stamp and frame) and the node's answer as its four topics."""
-    header = response.header
-    log_ns = stamp_ns(header)
-    with BagWriter(path, overwrite=True) as writer:
-        for stream, message in zip(STREAMS, view_messages(view, "32FC1", header), strict=True):
-            writer.write(f"/{stream}", message, log_ns, SENSOR_QOS)
-        for topic, message in outputs_from_response(response).by_topic().items():
-            writer.write(topic, message, log_ns)
-    return path
 
 
 def run_command(args: argparse.Namespace) -> int:

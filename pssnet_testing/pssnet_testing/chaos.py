@@ -11,7 +11,7 @@ stalls, and what that does to everyone else. Shared by ``benchmarks/chaos_bench.
 - :func:`transition_mid_work`: deactivate, cleanup or shutdown sent while a call or a topic set is in
   flight; the call is answered, the node lives (or stops cleanly after shutdown) and serves again.
 
-The processes the scenarios start run this module: ``python -m pssnet_ros.chaos client|subscriber ...``.
+The processes the scenarios start run this module: ``python -m pssnet_testing.chaos client|subscriber ...``.
 """
 
 from __future__ import annotations
@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from pssnet_ros.client import SAMPLE_SERVICE, RosClient, wait_until
-from pssnet_ros.processes import (
+from pssnet_ros.shm import SHM_GRACE_S
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
+from pssnet_testing.processes import (
     LOCK_SUFFIX,
-    SHM_GRACE_S,
     RosProcess,
     cpu_seconds,
     machine_cpu,
@@ -59,7 +59,7 @@ def scene_request(num_samples: int, grasps: bool = True) -> Any:
     from pssnet_interfaces.srv import SampleCompletions
 
     from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image
-    from pssnet_ros.synthetic_camera import FRAME_ID, SceneOptions, render_scene
+    from pssnet_testing.synthetic_camera import FRAME_ID, SceneOptions, render_scene
 
     view = render_scene(SceneOptions())
     messages = (numpy_to_image(view.depth, "32FC1"), numpy_to_image(view.mask, "mono8"),
@@ -72,7 +72,7 @@ def scene_request(num_samples: int, grasps: bool = True) -> Any:
 
 def scene_up_vector() -> list[float]:
     """The node's ``up_vector`` for the synthetic camera's scene."""
-    from pssnet_ros.synthetic_camera import SceneOptions, render_scene
+    from pssnet_testing.synthetic_camera import SceneOptions, render_scene
 
     return [float(v) for v in render_scene(SceneOptions()).up]
 
@@ -119,7 +119,7 @@ def allocated_bytes(files: dict[str, int]) -> int:
 
 def remove_dead_files(files: dict[str, int]) -> list[str]:
     """Removes those of ``files`` (a dead process's Fast DDS segments) that no live process uses, with their lock
-    files, without :func:`~pssnet_ros.processes.clean_stale_shm`'s grace period: for a caller that killed the
+    files, without :func:`~pssnet_ros.shm.clean_stale_shm`'s grace period: for a caller that killed the
     process itself. Returns the segments removed."""
     removed = sorted(stale_shm_files(files))
     for path in removed:
@@ -279,7 +279,7 @@ class ClientKill:
 def kill_client_mid_call(ros: RosClient, node: RosProcess, env: dict[str, str], timeout: float = 60.0) -> ClientKill:
     """kill -9 of a client process while the node works on its heavy request; then a new client calls."""
     before = ros.stats(timeout)
-    client = RosProcess.python_module("pssnet_ros.chaos", ["client", "--samples", str(HEAVY_SAMPLES)], env,
+    client = RosProcess.python_module("pssnet_testing.chaos", ["client", "--samples", str(HEAVY_SAMPLES)], env,
                                       name="doomed_client")
     try:
         client.wait_for(r"^sending", timeout)
@@ -288,7 +288,7 @@ def kill_client_mid_call(ros: RosClient, node: RosProcess, env: dict[str, str], 
                    "the node working on the doomed client's request")
     finally:
         killed_at = _kill(client)
-    with RosProcess.python_module("pssnet_ros.chaos", ["client", "--samples", str(LIGHT_SAMPLES)], env,
+    with RosProcess.python_module("pssnet_testing.chaos", ["client", "--samples", str(LIGHT_SAMPLES)], env,
                                   name="next_client") as next_client:
         match = next_client.wait_for(r"^answered success=(\w+) in ([\d.]+) ms: (.*)", timeout)
     after = ros.stats(timeout)
@@ -420,7 +420,7 @@ def run_with_subscribers(ros: RosClient, listener: CompletionsListener, node: Ro
     try:
         for mode in modes:
             processes[mode] = RosProcess.python_module(
-                "pssnet_ros.chaos", ["subscriber", "--mode", "spinning" if mode == "frozen" else mode], env,
+                "pssnet_testing.chaos", ["subscriber", "--mode", "spinning" if mode == "frozen" else mode], env,
                 name=f"subscriber_{mode}")
         for process in processes.values():
             process.wait_for(r"^subscribed", timeout)
@@ -597,7 +597,7 @@ def _subscriber_main(args: argparse.Namespace, domain: int) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pssnet_ros.chaos", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m pssnet_testing.chaos", description=__doc__.split("\n\n")[0])
     roles = parser.add_subparsers(dest="role", required=True)
     client = roles.add_parser("client", help="send one sample_completions request and print the outcome")
     client.add_argument("--samples", type=int, default=LIGHT_SAMPLES)

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from pssnet_ros.processes import configure_this_process
+from pssnet_testing.processes import configure_this_process
 
 NODE = "/pssnet"
 SAMPLE_SERVICE = f"{NODE}/sample_completions"

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from test_node_helpers import domain_for
 
-from pssnet_ros.processes import (
+from pssnet_ros.spinning import spin_until_shutdown
+from pssnet_testing.processes import (
     DOMAIN_GAIN,
     LOCK_SUFFIX,
     PORT_BASE,
@@ -22,7 +23,6 @@ from pssnet_ros.processes import (
     shm_files,
     stale_shm_files,
 )
-from pssnet_ros.spinning import spin_until_shutdown
 
 PARTICIPANT = """
 import rclpy
@@ -58,7 +58,7 @@ def test_a_domain_with_a_bound_rtps_port_is_skipped():
 
 CLAIMER = """
 import sys, time
-from pssnet_ros.processes import claim_domain_id
+from pssnet_testing.processes import claim_domain_id
 print(claim_domain_id(int(sys.argv[1])), flush=True)
 time.sleep(300)
 """

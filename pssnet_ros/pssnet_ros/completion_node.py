@@ -72,8 +72,8 @@ from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
 from pssnet_ros.heap import trim_heap
 from pssnet_ros.newest_slot import NewestSlot
 from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, check_values, markdown_table, pipeline_config
-from pssnet_ros.processes import clean_stale_shm
 from pssnet_ros.rclpy_fixes import refuse_unknown_transitions
+from pssnet_ros.shm import clean_stale_shm
 from pssnet_ros.spinning import spin_until_shutdown
 from pssnet_ros.sync import StampSynchronizer, SyncedSet
 

@@ -11,7 +11,8 @@ import runpy
 import sys
 from pathlib import Path
 
-BENCHMARK_DIR = Path(__file__).resolve().parent.parent / "benchmarks"
+#: benchmarks/ at the repository root, two levels above this module (pssnet_core/pssnet_core/bench.py)
+BENCHMARK_DIR = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
 def available() -> list[str]:
@@ -41,3 +42,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("name", help=f"benchmark name ({', '.join(available())})")
     parser.add_argument("args", nargs=argparse.REMAINDER, help="arguments passed to the benchmark")
     parser.set_defaults(func=run)
+
+
+# The machine description every benchmark prints with its numbers. It lives here, with the benchmark runner,
+# and not in the ROS test harness (pssnet_testing), because most benchmarks need no ROS at all and must run
+# where only pssnet_core is installed (e.g. a lent GPU machine without ROS).
+def cpu_kind() -> str:
+    """The CPU's model name (lscpu's "Model name", from /proc/cpuinfo) and whether it has AVX512-BF16 / AMX."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return "unknown CPU"
+    fields = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
+    fields = {k.strip(): v.strip() for k, v in fields.items()}
+    flags = set(fields.get("flags", "").split())
+    kind = f"{fields.get('model name', 'unknown CPU')}, avx512_bf16 {'present' if 'avx512_bf16' in flags else 'absent'}"
+    return kind + (", amx_bf16 present" if "amx_bf16" in flags else "")

@@ -15,8 +15,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from pssnet_ros.client import NODE, RosClient, wait_until
-from pssnet_ros.processes import RosProcess, claim_domain_id, ros_env, ros_param_args
+from pssnet_testing.client import NODE, RosClient, wait_until
+from pssnet_testing.processes import RosProcess, claim_domain_id, ros_env, ros_param_args
 
 MODULE = "pssnet_ros.completion_node"
 

@@ -1,0 +1,1 @@
+"""Development tools of the completion node: the test harness, the synthetic camera and the demo (not for robots)."""
