@@ -9,8 +9,9 @@ export PYTHONUNBUFFERED := 1
 
 .PHONY: setup demo test test-slow test-py312 lint colcon colcon-test clean datasets train-all results results-shipped oof-data oof-ambiguity
 
+# VENV=DIR builds and uses another venv (scripts/setup.sh reads it as PSSNET_VENV).
 setup:
-	@bash scripts/setup.sh
+	@PSSNET_VENV=$(abspath $(VENV)) bash scripts/setup.sh
 
 demo: setup
 	$(PY) -m pssnet_testing.demo --out demo_output
