@@ -17,6 +17,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import Header, String
 from test_node_helpers import node_checkpoint
 
+from pssnet_core.grasps import GripperConfig
 from pssnet_core.pipeline import CompletionPipeline, PipelineConfig
 from pssnet_ros.bag import (
     SENSOR_QOS,
@@ -123,6 +124,11 @@ def runs(recordings, parameters) -> dict[str, tuple[Path, BagSummary, list[int]]
     return done
 
 
+def header_of(message):
+    """A recorded message's header (a MarkerArray has none: its first marker's, the DELETEALL)."""
+    return message.markers[0].header if hasattr(message, "markers") else message.header
+
+
 @pytest.mark.parametrize("name", list(RECORDINGS))
 def test_output_holds_the_inputs_and_the_node_outputs_with_input_stamps_and_frames(runs, name):
     out, summary, stamps = runs[name]
@@ -133,8 +139,8 @@ def test_output_holds_the_inputs_and_the_node_outputs_with_input_stamps_and_fram
     for topic in OUTPUT_TOPICS.values():
         entries = topics[topic]
         assert len(entries) == GOOD_SETS
-        assert [stamp_ns(m.header) for _, m, _ in entries] == stamps
-        assert {m.header.frame_id for _, m, _ in entries} == {FRAME_ID}
+        assert [stamp_ns(header_of(m)) for _, m, _ in entries] == stamps
+        assert {header_of(m).frame_id for _, m, _ in entries} == {FRAME_ID}
         assert [log for log, _, _ in entries] == [s + 3_000_000 for s in stamps]  # when the set was complete
     cloud = topics["/pssnet/completions"][0][1]
     assert [f.name for f in cloud.fields] == ["x", "y", "z", "sample"] and cloud.width > 0
@@ -191,7 +197,7 @@ def test_completions_equal_the_pipeline_called_directly_with_the_node_seed(runs,
                                       result.known_occupied)
         # field for field what the node publishes for this result and header (CDR padding bytes are not
         # zeroed by the serialiser, so raw bytes are compared only through the messages they decode to)
-        assert cloud == output_messages(result, cloud.header).completions
+        assert cloud == output_messages(result, cloud.header, GripperConfig()).completions
     grasps = topics["/pssnet/grasp_candidates"][0][1]
     np.testing.assert_allclose(grasps.scores, result.grasps.scores, rtol=1e-6)
 
@@ -264,7 +270,7 @@ def test_demo_bag_records_the_exchange(tmp_path, view, parameters):
     assert set(topics) == {*INPUTS, *OUTPUT_TOPICS.values()} and {len(v) for v in topics.values()} == {1}
     # The merged cloud is what the node would have published on /pssnet/completions for this set.
     assert deserialize_message(topics["/pssnet/completions"][0][2], PointCloud2) == \
-        output_messages(result, header).completions
+        output_messages(result, header, GripperConfig()).completions
     assert deserialize_message(topics["/depth"][0][2], Image) == depth
 
 

@@ -40,7 +40,7 @@ def test_demo_writes_the_figure_prints_the_summary_and_exits_0(tmp_path):
     with Reader(out / "demo.mcap") as bag:  # what the camera sent and the node answered, one message each
         assert {c.topic: c.msgcount for c in bag.connections} == {
             "/depth": 1, "/mask": 1, "/camera_info": 1, "/pssnet/completions": 1, "/pssnet/known_occupied": 1,
-            "/pssnet/grasps": 1, "/pssnet/grasp_candidates": 1}
+            "/pssnet/grasps": 1, "/pssnet/grasp_candidates": 1, "/pssnet/grasp_markers": 1}
     # `pssnet bag` on that recording, with the demo node's parameters, reproduces the node's service answer.
     up = [float(v) for v in render_scene(SceneOptions()).up]
     again = tmp_path / "again.mcap"

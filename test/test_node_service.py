@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import re
 import threading
+import time
 
 import numpy as np
 import pytest
 from pssnet_interfaces.srv import SampleCompletions
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial import cKDTree
 from sensor_msgs.msg import PointField
 from test_node_helpers import (
@@ -23,8 +25,8 @@ from test_node_helpers import (
 )
 
 from pssnet_core.geometry import CameraIntrinsics
-from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy
-from pssnet_testing.client import SAMPLE_SERVICE, RosClient
+from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy, pose_to_matrix
+from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_testing.node_under_test import NodeUnderTest
 from pssnet_testing.processes import stale_shm_files
 
@@ -115,6 +117,36 @@ def test_grasps_are_returned_best_first_in_the_request_frame(ros, service, scene
         assert abs(np.linalg.norm(q) - 1.0) < 1e-6
     if checkpoint[1]:  # a trained model completes a mug a parallel-jaw gripper can hold
         assert n > 0 and response.grasp_scores[0] >= 0.5, response.message
+
+
+def test_service_results_are_published_for_rviz_only_when_asked(ros, service, scene):
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    received: list[MarkerArray] = []
+    ros.node.create_subscription(MarkerArray, "/pssnet/grasp_markers", received.append,
+                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    wait_until(lambda: ros.node.count_publishers("/pssnet/grasp_markers") > 0, 30, "the node's marker publisher")
+    response = call(ros, service, make_request(scene, stamped_header(91), num_samples=4, compute_grasps=True))
+    assert response.success, response.message
+    time.sleep(1.0)
+    assert not received, "published although publish_service_results is false (the default)"
+    assert ros.set_parameters(publish_service_results=True)[0].successful
+    try:
+        response = call(ros, service, make_request(scene, stamped_header(92), num_samples=4, compute_grasps=True))
+    finally:
+        assert ros.set_parameters(publish_service_results=False)[0].successful
+    assert response.success, response.message
+    markers = wait_until(lambda: received[0].markers if received else None, 30, "the call's grasp markers")
+    assert markers[0].action == Marker.DELETEALL and all(m.header.stamp.sec == 92 for m in markers)
+    assert [m.id for m in markers[1:]] == list(range(len(response.grasps.poses)))
+    for marker, pose, width, score in zip(markers[1:], response.grasps.poses, response.grasp_widths,
+                                          response.grasp_scores, strict=True):
+        # the first finger runs from the fingertip at -width/2 on the closing axis (y) back along the approach
+        tip = pose_to_matrix(pose) @ np.array([0.0, -width / 2, 0.0, 1.0])
+        first = marker.points[0]
+        np.testing.assert_allclose([first.x, first.y, first.z], tip[:3], atol=1e-6)
+        assert marker.type == Marker.LINE_LIST and len(marker.points) == 8
+        assert abs(marker.color.g - min(1.0, 2 * score)) < 1e-6
 
 
 def test_seeded_samples_are_reproducible_and_16uc1_works(ros, service, scene):

@@ -24,6 +24,7 @@ from pssnet_interfaces.srv import SampleCompletions
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from test_node_helpers import domain_for, node_checkpoint, render_mug_scene, scene_messages
+from visualization_msgs.msg import Marker, MarkerArray
 
 from pssnet_ros.completion_node import WARN_THROTTLE_S
 from pssnet_ros.conversions import numpy_to_image, pointcloud2_to_numpy
@@ -40,7 +41,7 @@ RELIABLE = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
 #: the listener keeps everything: a late executor must not turn into lost outputs
 LISTEN = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
 OUTPUTS = {"completions": PointCloud2, "known_occupied": PointCloud2, "grasps": PoseArray,
-           "grasp_candidates": GraspCandidates}
+           "grasp_candidates": GraspCandidates, "grasp_markers": MarkerArray}
 TIMEOUT = 60.0  # for anything the node must do: generous, since the machine may be loaded
 
 
@@ -59,7 +60,8 @@ def node(tmp_path_factory, scene):
 
 
 def stamp_of(msg) -> int:
-    return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    header = msg.markers[0].header if isinstance(msg, MarkerArray) else msg.header  # a DELETEALL marker comes first
+    return header.stamp.sec * 10**9 + header.stamp.nanosec
 
 
 class Listener:
@@ -195,8 +197,12 @@ def check_outputs(out: dict[str, list], stamps: list[int], count: int) -> None:
         points, sample = pointcloud2_to_numpy(cloud)
         assert len(points) > 0 and set(np.unique(sample).tolist()) <= set(range(SAMPLES))
     cloud_stamps = [stamp_of(c) for c in clouds]
-    for name in ("known_occupied", "grasps", "grasp_candidates"):
+    for name in ("known_occupied", "grasps", "grasp_candidates", "grasp_markers"):
         assert [stamp_of(m) for m in out[name]] == cloud_stamps, name
+    for candidates, markers in zip(out["grasp_candidates"], out["grasp_markers"], strict=True):
+        # one gripper outline per published grasp, after the DELETEALL that clears the previous set's
+        assert [m.action for m in markers.markers] == [Marker.DELETEALL] + [Marker.ADD] * len(candidates.poses)
+        assert all(m.header.frame_id == "camera_depth_optical_frame" for m in markers.markers)
 
 
 def check_accounting(d: dict[str, int], elapsed_s: float) -> None:

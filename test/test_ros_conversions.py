@@ -268,3 +268,26 @@ def test_pose_round_trip():
     np.testing.assert_allclose(pose_to_matrix(pose), matrix, atol=1e-12)
     with pytest.raises(ConversionError, match="finite 4x4"):
         matrix_to_pose(np.eye(3))
+
+
+def test_grasp_markers_draw_each_gripper_in_its_pose_coloured_by_score():
+    from visualization_msgs.msg import Marker
+
+    from pssnet_core.grasps import GripperConfig
+    from pssnet_ros.completion_io import grasp_markers, score_colour
+
+    header = Header(frame_id="camera_depth_optical_frame")
+    assert [m.action for m in grasp_markers([], [], [], header, GripperConfig()).markers] == [Marker.DELETEALL]
+    gripper = GripperConfig(finger_length=0.04)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("x", 90, degrees=True).as_matrix()  # approach (+z) turned onto -y
+    pose[:3, 3] = [0.1, 0.2, 0.6]
+    markers = grasp_markers([matrix_to_pose(pose)], [0.25], [0.06], header, gripper).markers
+    assert [m.action for m in markers] == [Marker.DELETEALL, Marker.ADD] and markers[1].header == header
+    points = np.array([[p.x, p.y, p.z] for p in markers[1].points])
+    # first finger: from the fingertip at y = -0.03 (closing axis, turned onto z) back 4 cm against the approach
+    np.testing.assert_allclose(points[0], [0.1, 0.2, 0.6 - 0.03], atol=1e-9)
+    np.testing.assert_allclose(points[1], [0.1, 0.2 + 0.04, 0.6 - 0.03], atol=1e-9)
+    assert (score_colour(0.0).r, score_colour(0.0).g) == (1.0, 0.0)
+    assert (score_colour(1.0).r, score_colour(1.0).g) == (0.0, 1.0)
+    assert markers[1].color == score_colour(0.25) and score_colour(0.25).r == 1.0 and score_colour(0.25).g == 0.5

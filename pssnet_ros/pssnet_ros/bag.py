@@ -398,7 +398,7 @@ def _complete(pipeline: CompletionPipeline, values: dict[str, Any], messages: di
         summary.sets_failed[f"internal error: {type(error).__name__}: {error}"] += 1
         return
     summary.completion_seconds += time.perf_counter() - t0
-    for topic, message in output_messages(result, header).by_topic().items():
+    for topic, message in output_messages(result, header, pipeline.config.grasps.gripper).by_topic().items():
         writer.write(topic, message, log_ns)
     summary.sets_completed += 1
 

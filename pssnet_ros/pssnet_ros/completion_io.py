@@ -11,12 +11,15 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import Pose, PoseArray
+from geometry_msgs.msg import Point, Pose, PoseArray
 from pssnet_interfaces.msg import GraspCandidates
 from pssnet_interfaces.srv import SampleCompletions
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
-from std_msgs.msg import Header
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
 
+from pssnet_core.grasps import GripperConfig
+from pssnet_core.grasps.plotting import gripper_segments
 from pssnet_core.pipeline import CompletionPipeline, PipelineResult
 from pssnet_ros import conversions
 from pssnet_ros.params import pipeline_config
@@ -31,24 +34,29 @@ OUTPUT_TOPICS: dict[str, str] = {
     "known_occupied": "/pssnet/known_occupied",
     "grasps": "/pssnet/grasps",
     "grasp_candidates": "/pssnet/grasp_candidates",
+    "grasp_markers": "/pssnet/grasp_markers",
 }
+#: Line width of the grasp markers' gripper outlines (metres).
+MARKER_LINE_WIDTH = 0.003
 
 
 @dataclass(frozen=True)
 class OutputMessages:
-    """The four messages the node publishes for one completed set (field names are keys of OUTPUT_TOPICS).
+    """The messages the node publishes for one completed set (field names are keys of OUTPUT_TOPICS).
 
     Attributes:
         completions: every sample's voxel centres, x, y, z float32 + ``sample`` uint32.
         known_occupied: the observed voxels' centres.
         grasps: grasp poses, best first.
         grasp_candidates: the same poses with their scores and widths.
+        grasp_markers: the grasps drawn as gripper outlines for RViz (:func:`grasp_markers`).
     """
 
     completions: PointCloud2
     known_occupied: PointCloud2
     grasps: PoseArray
     grasp_candidates: GraspCandidates
+    grasp_markers: MarkerArray
 
     def by_topic(self) -> dict[str, Any]:
         """Topic name -> message, in publishing order."""
@@ -108,15 +116,42 @@ def grasp_fields(result: PipelineResult) -> tuple[list[Pose], list[float], list[
     return poses, [float(s) for s in grasps.scores], [float(w) for w in grasps.widths]
 
 
-def output_messages(result: PipelineResult, header: Header) -> OutputMessages:
-    """The node's continuous-mode publications for one result, all carrying ``header``."""
+def score_colour(score: float) -> ColorRGBA:
+    """Red (held by no completion) through yellow to green (held by every completion), mostly opaque."""
+    score = min(max(float(score), 0.0), 1.0)
+    return ColorRGBA(r=min(1.0, 2.0 * (1.0 - score)), g=min(1.0, 2.0 * score), b=0.0, a=0.9)
+
+
+def grasp_markers(poses: list[Pose], scores: list[float], widths: list[float], header: Header,
+                  gripper: GripperConfig) -> MarkerArray:
+    """RViz markers of ranked grasps: a DELETEALL (the previous set's grippers go), then one LINE_LIST per grasp
+    (``ns`` "grasps", ``id`` = rank): both fingers, the palm bar and a stem along the approach, as in the demo's
+    figure, coloured by score (:func:`score_colour`)."""
+    markers = [Marker(header=header, ns="grasps", action=Marker.DELETEALL)]
+    if poses:
+        matrices = np.stack([conversions.pose_to_matrix(p) for p in poses])
+        segments = gripper_segments(matrices, np.asarray(widths, np.float64), gripper)  # (K, 4, 2, 3)
+        for rank, (lines, score) in enumerate(zip(segments, scores, strict=True)):
+            marker = Marker(header=header, ns="grasps", id=rank, type=Marker.LINE_LIST, action=Marker.ADD,
+                            color=score_colour(score), frame_locked=False)
+            marker.pose.orientation.w = 1.0
+            marker.scale.x = MARKER_LINE_WIDTH
+            marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in lines.reshape(-1, 3)]
+            markers.append(marker)
+    return MarkerArray(markers=markers)
+
+
+def output_messages(result: PipelineResult, header: Header, gripper: GripperConfig) -> OutputMessages:
+    """The node's continuous-mode publications for one result, all carrying ``header``; ``gripper`` draws the
+    grasp markers (the pipeline's ``config.grasps.gripper``)."""
     points, index = result.merged()
     poses, scores, widths = grasp_fields(result)
     return OutputMessages(
         completions=conversions.points_to_pointcloud2(points, header, index),
         known_occupied=conversions.points_to_pointcloud2(result.known_occupied, header),
         grasps=PoseArray(header=header, poses=poses),
-        grasp_candidates=GraspCandidates(header=header, poses=poses, scores=scores, widths=widths))
+        grasp_candidates=GraspCandidates(header=header, poses=poses, scores=scores, widths=widths),
+        grasp_markers=grasp_markers(poses, scores, widths, header, gripper))
 
 
 def fill_response(response: SampleCompletions.Response, result: PipelineResult,
@@ -135,7 +170,7 @@ def fill_response(response: SampleCompletions.Response, result: PipelineResult,
     return response
 
 
-def outputs_from_response(response: SampleCompletions.Response) -> OutputMessages:
+def outputs_from_response(response: SampleCompletions.Response, gripper: GripperConfig) -> OutputMessages:
     """The publications the node would have made for a successful service response (its samples merged into
     one cloud with a ``sample`` field), e.g. to record a service exchange next to topic output."""
     header = response.header
@@ -148,4 +183,6 @@ def outputs_from_response(response: SampleCompletions.Response) -> OutputMessage
         known_occupied=response.known_occupied,
         grasps=PoseArray(header=header, poses=poses),
         grasp_candidates=GraspCandidates(header=header, poses=poses, scores=list(response.grasp_scores),
-                                         widths=list(response.grasp_widths)))
+                                         widths=list(response.grasp_widths)),
+        grasp_markers=grasp_markers(poses, list(response.grasp_scores), list(response.grasp_widths), header,
+                                    gripper))

@@ -15,9 +15,11 @@ Interface (node name ``pssnet``; relative names are remappable):
 - serves ``~/sample_completions`` (pssnet_interfaces/srv/SampleCompletions) -> /pssnet/sample_completions
   (answering STATUS_NOT_ACTIVE unless active) and ``~/get_stats`` (std_srvs/Trigger: counters as JSON, see
   :meth:`CompletionNode.stats`) in every state; the standard lifecycle services ``~/change_state``, ``~/get_state``, ...
-- publishes in continuous mode ``~/completions`` (PointCloud2 x, y, z + ``sample``), ``~/known_occupied``,
-  ``~/grasps`` (PoseArray, best first), ``~/grasp_candidates`` (pssnet_interfaces/msg/GraspCandidates);
-  and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) at 1 Hz in every state.
+- publishes in continuous mode (and for every service result with ``publish_service_results``)
+  ``~/completions`` (PointCloud2 x, y, z + ``sample``), ``~/known_occupied``, ``~/grasps`` (PoseArray, best
+  first), ``~/grasp_candidates`` (pssnet_interfaces/msg/GraspCandidates), ``~/grasp_markers``
+  (visualization_msgs/MarkerArray: gripper outlines coloured by score, for RViz); and ``/diagnostics``
+  (diagnostic_msgs/DiagnosticArray) at 1 Hz in every state.
 
 All outputs carry the input's header. The node only converts messages; the work is done by
 :class:`pssnet_core.pipeline.CompletionPipeline`.
@@ -56,6 +58,7 @@ from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 from pssnet_core.pipeline import CompletionPipeline, ModelOutputError, PipelineResult, RunCancelled, up_vector_warning
 from pssnet_ros.completion_io import (
@@ -102,7 +105,7 @@ SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64, reliability=
                          durability=DurabilityPolicy.VOLATILE)
 #: Continuous-mode outputs: name -> type (topics: completion_io.OUTPUT_TOPICS, ``~/name`` of this node).
 OUTPUT_TYPES: dict[str, type] = {"completions": PointCloud2, "known_occupied": PointCloud2, "grasps": PoseArray,
-                                 "grasp_candidates": GraspCandidates}
+                                 "grasp_candidates": GraspCandidates, "grasp_markers": MarkerArray}
 
 
 class StartupError(RuntimeError):
@@ -430,7 +433,7 @@ class CompletionNode(LifecycleNode):
         self._finish("sets_processed")
 
     def _publish(self, result: PipelineResult, header: Header) -> None:
-        messages = output_messages(result, header)
+        messages = output_messages(result, header, self.pipeline.config.grasps.gripper)
         for name in OUTPUT_TOPICS:
             self._outputs[name].publish(getattr(messages, name))
 
@@ -512,6 +515,8 @@ class CompletionNode(LifecycleNode):
                                 f"internal error: {type(error).__name__}: {error}")
         fill_response(response, result, header)
         response.status = Status.STATUS_OK
+        if self._values["publish_service_results"]:  # so that RViz shows what a planner asked for
+            self._publish(result, header)
         self._health.completed(time.perf_counter() - t0)
         points = sum(len(c) for c in result.completions)
         ms = {name: seconds * 1000 for name, seconds in result.timings.items()}
@@ -587,7 +592,8 @@ def usage() -> str:
             "Node name: pssnet. Subscribes: depth, mask, camera_info (remappable). Serves:\n"
             "/pssnet/sample_completions (pssnet_interfaces/srv/SampleCompletions), /pssnet/get_stats.\n"
             "Publishes (continuous mode): /pssnet/completions, /pssnet/known_occupied, /pssnet/grasps,\n"
-            "/pssnet/grasp_candidates, /diagnostics (1 Hz).\n\nParameters:\n" + markdown_table() + "\n")
+            "/pssnet/grasp_candidates, /pssnet/grasp_markers, /diagnostics (1 Hz).\n\nParameters:\n"
+            + markdown_table() + "\n")
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pssnet_core.grasps import GripperConfig
 from pssnet_ros.bag import SENSOR_QOS, BagWriter
 from pssnet_ros.completion_io import STREAMS, outputs_from_response, stamp_ns
 from pssnet_testing.client import SAMPLE_SERVICE, RosClient
@@ -39,13 +40,14 @@ if TYPE_CHECKING:
 
 def write_demo_bag(path: Path, view: RenderedView, response: SampleCompletions.Response) -> Path:
     """Records one demo exchange: the camera's depth/mask/camera_info of the set the node completed (as the
-    synthetic camera sent them: same images, stamp and frame) and the node's answer as its four topics."""
+    synthetic camera sent them: same images, stamp and frame) and the node's answer as its topics (the demo's node
+    runs with the default gripper)."""
     header = response.header
     log_ns = stamp_ns(header)
     with BagWriter(path, overwrite=True) as writer:
         for stream, message in zip(STREAMS, view_messages(view, "32FC1", header), strict=True):
             writer.write(f"/{stream}", message, log_ns, SENSOR_QOS)
-        for topic, message in outputs_from_response(response).by_topic().items():
+        for topic, message in outputs_from_response(response, GripperConfig()).by_topic().items():
             writer.write(topic, message, log_ns)
     return path
 
@@ -121,7 +123,7 @@ def write_figure(path: Path, view, response, max_samples: int = 4) -> None:
     import matplotlib.pyplot as plt
 
     from pssnet_core.geometry import gravity_aligned_rotation
-    from pssnet_core.grasps import GripperConfig, gripper_segments
+    from pssnet_core.grasps import gripper_segments
     from pssnet_core.surfaces import draw_surface, equal_box, most_different, sample_agreement, surface_of
     from pssnet_ros.conversions import pointcloud2_to_numpy, pose_to_matrix
 
