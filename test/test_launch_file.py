@@ -33,6 +33,7 @@ class Recorded:
 
 def stand_in_modules() -> dict[str, types.ModuleType]:
     names = {"launch": ["LaunchDescription"], "launch.actions": ["DeclareLaunchArgument"],
+             "launch.conditions": ["IfCondition"],
              "launch.substitutions": ["LaunchConfiguration", "PathJoinSubstitution"],
              "launch_ros.actions": ["Node"], "launch_ros.parameter_descriptions": ["ParameterValue"],
              "launch_ros.substitutions": ["FindPackageShare"], "launch_ros": []}
@@ -56,7 +57,7 @@ def description(monkeypatch):
 
 def test_the_node_its_parameters_and_remappings(description):
     entities = description.args[0]
-    nodes = [e for e in entities if type(e).__name__ == "Node"]
+    nodes = [e for e in entities if type(e).__name__ == "Node" and e.kwargs["package"] == "pssnet_ros"]
     assert len(nodes) == 1
     node = nodes[0].kwargs
     assert node["package"] == "pssnet_ros" and node["name"] == "pssnet"
@@ -65,7 +66,7 @@ def test_the_node_its_parameters_and_remappings(description):
     remapped = {source: target.args[0] for source, target in node["remappings"]}
     assert set(remapped) == set(STREAMS) and all(remapped[s] == s for s in STREAMS)
     arguments = {e.args[0]: e.kwargs for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
-    assert set(arguments) == {"namespace", "params_file", "autostart", *STREAMS}
+    assert set(arguments) == {"namespace", "params_file", "autostart", "rviz", *STREAMS}
     assert all(arguments[s]["default_value"] == s for s in STREAMS)  # defaults: the node's own names
     assert node["namespace"].args[0] == "namespace"
     # The parameter file: the installed config/completion_node.yaml, then autostart from its argument as a bool.
@@ -84,3 +85,21 @@ def test_the_parameter_file_it_installs_is_valid_for_the_node():
     setup = (PACKAGE / "setup.py").read_text()
     assert '(f"share/{PACKAGE}/launch", glob("launch/*.launch.py"))' in setup
     assert '(f"share/{PACKAGE}/config", glob("config/*"))' in setup
+
+
+def test_rviz_starts_on_request_with_the_installed_config_that_draws_the_node_outputs(description):
+    from pssnet_ros.completion_io import OUTPUT_TOPICS
+
+    entities = description.args[0]
+    arguments = {e.args[0]: e.kwargs for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
+    assert arguments["rviz"]["default_value"] == "false"
+    (rviz,) = [e.kwargs for e in entities if type(e).__name__ == "Node" and e.kwargs["package"] == "rviz2"]
+    assert rviz["condition"].args[0].args[0] == "rviz" and rviz["arguments"][0] == "-d"
+    config = rviz["arguments"][1].args[0]
+    assert config[0].args[0] == "pssnet_ros" and config[1:] == ["config", "pssnet.rviz"]
+    view = yaml.safe_load((PACKAGE / "config" / "pssnet.rviz").read_text())["Visualization Manager"]
+    topics = {d["Topic"]["Value"]: d["Class"] for d in view["Displays"] if "Topic" in d}
+    assert topics == {OUTPUT_TOPICS["completions"]: "rviz_default_plugins/PointCloud2",
+                      OUTPUT_TOPICS["known_occupied"]: "rviz_default_plugins/PointCloud2",
+                      OUTPUT_TOPICS["grasp_markers"]: "rviz_default_plugins/MarkerArray"}
+    assert view["Global Options"]["Fixed Frame"] == "camera_depth_optical_frame"  # what the outputs carry

@@ -2,10 +2,13 @@
 
     ros2 launch pssnet_ros completion.launch.py depth:=/camera/depth/image_rect_raw \
         camera_info:=/camera/depth/camera_info mask:=/segmentation/mask [namespace:=arm] \
-        [params_file:=my_params.yaml] [autostart:=false]
+        [params_file:=my_params.yaml] [autostart:=false] [rviz:=true]
 
 With ``autostart:=false`` the node stays unconfigured until a lifecycle manager (e.g. nav2_lifecycle_manager)
-drives it through configure and activate on ``<namespace>/pssnet/change_state``.
+drives it through configure and activate on ``<namespace>/pssnet/change_state``. With ``rviz:=true`` RViz 2 starts
+too (``rviz2`` must be installed: ``ros-jazzy-rviz2``, not a dependency of this package, since a robot rarely has a
+display) with the installed ``config/pssnet.rviz``: it draws what the node publishes (continuous mode, or every
+service result with the parameter ``publish_service_results: true``).
 """
 
 from launch_ros.actions import Node
@@ -14,6 +17,7 @@ from launch_ros.substitutions import FindPackageShare
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 
 #: The node's input topics (relative names of its subscriptions), each remappable by a launch argument.
@@ -33,6 +37,8 @@ def generate_launch_description() -> LaunchDescription:
             description="parameter file of the node (the installed defaults)"),
         DeclareLaunchArgument("autostart", default_value="true",
                               description="configure and activate at start; false = wait for a lifecycle manager"),
+        DeclareLaunchArgument("rviz", default_value="false",
+                              description="also start RViz 2 with the installed config/pssnet.rviz"),
     ] + [DeclareLaunchArgument(topic, default_value=topic, description=text) for topic, text in INPUTS.items()]
     node = Node(
         package="pssnet_ros",
@@ -45,4 +51,12 @@ def generate_launch_description() -> LaunchDescription:
         output="screen",
         emulate_tty=True,
     )
-    return LaunchDescription([*arguments, node])
+    rviz = Node(
+        package="rviz2",
+        executable="rviz2",
+        name="rviz2",
+        namespace=LaunchConfiguration("namespace"),
+        arguments=["-d", PathJoinSubstitution([FindPackageShare("pssnet_ros"), "config", "pssnet.rviz"])],
+        condition=IfCondition(LaunchConfiguration("rviz")),
+    )
+    return LaunchDescription([*arguments, node, rviz])
