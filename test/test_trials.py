@@ -7,6 +7,10 @@ the slow test, on CoACD itself.
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo's first import (physics, below): the short run's frames
+
 import json
 from dataclasses import replace
 
@@ -111,7 +115,7 @@ def test_same_inputs_give_the_same_outcome_bit_for_bit(brick):
 
 
 def test_hand_and_object_model_follow_the_gripper_and_the_true_mesh(brick):
-    import mujoco  # after pssnet_core.trials, which picks the headless EGL backend for the short run's frames
+    import mujoco
 
     from pssnet_core.trials.physics import build_model
 

@@ -6,11 +6,10 @@ MuJoCo (:mod:`~pssnet_core.trials.physics`, collision shapes from :mod:`~pssnet_
 reports success rates (:mod:`~pssnet_core.trials.run`).
 """
 
-import os
-
-# MuJoCo picks its GL backend when first imported; offscreen frames on a headless machine need EGL
-# (osmesa does not work here). A caller's own choice wins.
-os.environ.setdefault("MUJOCO_GL", "egl")
+#: MuJoCo's GL backend for the filmstrips' offscreen frames on a headless machine (osmesa does not work here).
+#: MuJoCo reads ``MUJOCO_GL`` when it is first imported, so the command line sets it (unless the caller did)
+#: before it imports the trial modules; a program that imports :mod:`pssnet_core.trials.physics` itself sets it first.
+HEADLESS_GL = "egl"
 
 #: the scenes (:mod:`pssnet_core.trials.scenarios`)
 SCENARIOS = ("mug_hidden_handle", "box_slit", "control")

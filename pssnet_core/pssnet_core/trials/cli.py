@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from dataclasses import replace
 from pathlib import Path
 
-from pssnet_core.trials import OBJECT_SOURCES, SCENARIOS, STRATEGIES
+from pssnet_core.trials import HEADLESS_GL, OBJECT_SOURCES, SCENARIOS, STRATEGIES
 
 
 def _names(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
@@ -48,6 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_command(args: argparse.Namespace) -> int:
+    os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo is first imported (pssnet_core.trials)
     from pssnet_core.inference import CheckpointError, Completer
     from pssnet_core.trials.run import TrialsConfig, markdown_table, run_trials, summarise
     from pssnet_core.trials.strategies import Strategist
