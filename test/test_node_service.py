@@ -123,20 +123,24 @@ def test_service_results_are_published_for_rviz_only_when_asked(ros, service, sc
     from visualization_msgs.msg import Marker, MarkerArray
 
     received: list[MarkerArray] = []
-    ros.node.create_subscription(MarkerArray, "/pssnet/grasp_markers", received.append,
-                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    wait_until(lambda: ros.node.count_publishers("/pssnet/grasp_markers") > 0, 30, "the node's marker publisher")
-    response = call(ros, service, make_request(scene, stamped_header(91), num_samples=4, compute_grasps=True))
-    assert response.success, response.message
-    time.sleep(1.0)
-    assert not received, "published although publish_service_results is false (the default)"
-    assert ros.set_parameters(publish_service_results=True)[0].successful
+    listener = ros.node.create_subscription(MarkerArray, "/pssnet/grasp_markers", received.append,
+                                            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     try:
-        response = call(ros, service, make_request(scene, stamped_header(92), num_samples=4, compute_grasps=True))
+        wait_until(lambda: ros.node.count_publishers("/pssnet/grasp_markers") > 0, 30, "the node's marker publisher")
+        response = call(ros, service, make_request(scene, stamped_header(91), num_samples=4, compute_grasps=True))
+        assert response.success, response.message
+        time.sleep(1.0)
+        assert not received, "published although publish_service_results is false (the default)"
+        assert ros.set_parameters(publish_service_results=True)[0].successful
+        try:
+            response = call(ros, service, make_request(scene, stamped_header(92), num_samples=4,
+                                                       compute_grasps=True))
+        finally:
+            assert ros.set_parameters(publish_service_results=False)[0].successful
+        assert response.success, response.message
+        markers = wait_until(lambda: received[0].markers if received else None, 30, "the call's grasp markers")
     finally:
-        assert ros.set_parameters(publish_service_results=False)[0].successful
-    assert response.success, response.message
-    markers = wait_until(lambda: received[0].markers if received else None, 30, "the call's grasp markers")
+        ros.node.destroy_subscription(listener)
     assert markers[0].action == Marker.DELETEALL and all(m.header.stamp.sec == 92 for m in markers)
     assert [m.id for m in markers[1:]] == list(range(len(response.grasps.poses)))
     for marker, pose, width, score in zip(markers[1:], response.grasps.poses, response.grasp_widths,

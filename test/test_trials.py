@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo's first import (physics, below): the short run's frames
+from pssnet_core.trials import HEADLESS_GL
+
+os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo's first import (physics, below): the short run's frames
 
 import json
 from dataclasses import replace

@@ -18,8 +18,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from pssnet_core.grasps import GripperConfig
-from pssnet_core.grasps.plotting import gripper_segments
+from pssnet_core.grasps import GripperConfig, gripper_segments
 from pssnet_core.pipeline import CompletionPipeline, PipelineResult
 from pssnet_ros import conversions
 from pssnet_ros.params import pipeline_config
@@ -128,16 +127,15 @@ def grasp_markers(poses: list[Pose], scores: list[float], widths: list[float], h
     (``ns`` "grasps", ``id`` = rank): both fingers, the palm bar and a stem along the approach, as in the demo's
     figure, coloured by score (:func:`score_colour`)."""
     markers = [Marker(header=header, ns="grasps", action=Marker.DELETEALL)]
-    if poses:
-        matrices = np.stack([conversions.pose_to_matrix(p) for p in poses])
-        segments = gripper_segments(matrices, np.asarray(widths, np.float64), gripper)  # (K, 4, 2, 3)
-        for rank, (lines, score) in enumerate(zip(segments, scores, strict=True)):
-            marker = Marker(header=header, ns="grasps", id=rank, type=Marker.LINE_LIST, action=Marker.ADD,
-                            color=score_colour(score), frame_locked=False)
-            marker.pose.orientation.w = 1.0
-            marker.scale.x = MARKER_LINE_WIDTH
-            marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in lines.reshape(-1, 3)]
-            markers.append(marker)
+    matrices = np.array([conversions.pose_to_matrix(p) for p in poses]).reshape(-1, 4, 4)
+    segments = gripper_segments(matrices, np.asarray(widths, np.float64), gripper)
+    for rank, (lines, score) in enumerate(zip(segments, scores, strict=True)):  # lines: (4, 2, 3)
+        marker = Marker(header=header, ns="grasps", id=rank, type=Marker.LINE_LIST, action=Marker.ADD,
+                        color=score_colour(score))
+        marker.pose.orientation.w = 1.0
+        marker.scale.x = MARKER_LINE_WIDTH
+        marker.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in lines.reshape(-1, 3)]
+        markers.append(marker)
     return MarkerArray(markers=markers)
 
 
