@@ -20,7 +20,14 @@ from pssnet_core.geometry import (
     check_intrinsics,
 )
 from pssnet_core.inference import CompletionResult
-from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineInputError, RunCancelled
+from pssnet_core.pipeline import (
+    STEP_GRASPS,
+    STEP_NETWORK,
+    CompletionPipeline,
+    PipelineConfig,
+    PipelineInputError,
+    RunCancelled,
+)
 from pssnet_core.support_plane import fit_support_plane
 
 
@@ -68,24 +75,25 @@ def test_outputs_are_voxel_centres_around_the_observed_points(scene):
     assert set(result.timings) == {"observe", "network", "centres", "grasps", "total"}
 
 
-def test_should_stop_ends_the_run_between_its_steps(scene):
+def test_should_stop_is_told_each_step_and_ends_the_run_there(scene):
     pipeline = CompletionPipeline(EchoCompleter(), PipelineConfig(num_samples=3, up_vector=tuple(scene.up)))
-    asked: list[int] = []
+    for step in (STEP_NETWORK, STEP_GRASPS):
+        told: list[str] = []
 
-    def stop_at(step: int):
-        def should_stop() -> bool:
-            asked.append(step)
-            return len(asked) == step
-        return should_stop
+        def should_stop(next_step: str, stop_at: str = step, told: list[str] = told) -> bool:
+            told.append(next_step)
+            return next_step == stop_at
 
-    with pytest.raises(RunCancelled, match="stopped before the network"):
-        pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=stop_at(1))
-    asked.clear()
-    with pytest.raises(RunCancelled, match="stopped before the grasps"):
-        pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=stop_at(2))
-    asked.clear()
-    result = pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=lambda: False)
-    assert result.num_samples == 3 and result.grasps is not None
+        with pytest.raises(RunCancelled, match=f"stopped before the {step}"):
+            pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=should_stop)
+        assert told == [STEP_NETWORK, STEP_GRASPS][:len(told)] and told[-1] == step
+    told = []
+    result = pipeline.run(scene.depth, scene.mask, scene.intrinsics, should_stop=lambda s: told.append(s) or False)
+    assert result.num_samples == 3 and result.grasps is not None and told == [STEP_NETWORK, STEP_GRASPS]
+    told = []
+    pipeline.run(scene.depth, scene.mask, scene.intrinsics, compute_grasps=False,
+                 should_stop=lambda s: told.append(s) or False)
+    assert told == [STEP_NETWORK]
 
 
 def test_real_model_seeds_and_sample_counts(tiny_pipeline, scene):

@@ -44,6 +44,8 @@ FALLBACK_VOXEL_SIZE = GridConfig().voxel_size
 #: accepted lengths of ``up_vector``: only its direction counts, but a length that over- or underflows when
 #: squared normalises to [0, 0, 0] or NaN and breaks every call
 UP_VECTOR_LENGTH = (1e-6, 1e6)
+#: the steps of :meth:`CompletionPipeline.run` after the observation, as its ``should_stop`` is told them
+STEP_NETWORK, STEP_GRASPS = "network", "grasps"
 
 
 def up_vector_warning(tilt_deg: float, limit_deg: float) -> str:
@@ -374,7 +376,7 @@ class CompletionPipeline:
 
     def run(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
             num_samples: int | None = None, compute_grasps: bool = True,
-            should_stop: Callable[[], bool] | None = None) -> PipelineResult:
+            should_stop: Callable[[str], bool] | None = None) -> PipelineResult:
         """Completes one view.
 
         Args:
@@ -383,8 +385,9 @@ class CompletionPipeline:
             intrinsics: intrinsics of the depth image.
             num_samples: completions to draw; None or 0 = ``config.num_samples``.
             compute_grasps: also generate and score grasps.
-            should_stop: asked between the steps (before the network, before the grasps); True ends the run
-                with :class:`RunCancelled` (a node leaving the active state stops its calls in flight so).
+            should_stop: asked before each later step with its name (``STEP_NETWORK``, ``STEP_GRASPS``); True
+                ends the run with :class:`RunCancelled` (a node leaving the active state, or a client cancelling
+                its goal, stops the call so); a caller may also report the step as progress.
 
         Raises:
             RunCancelled: ``should_stop`` returned True.
@@ -406,7 +409,7 @@ class CompletionPipeline:
             check_object_scale(observation.points, observation.pose, grid, config.min_object_voxels)
         except ObservationError as error:
             raise PipelineInputError(str(error)) from error
-        self._stop_if(should_stop, "before the network")
+        self._stop_if(should_stop, STEP_NETWORK)
         t1 = time.perf_counter()
         from pssnet_core.inference import CompletionInputError
         from pssnet_core.models.integrity import IntegrityError, check_samples
@@ -432,7 +435,7 @@ class CompletionPipeline:
         t3 = time.perf_counter()
         grasps = None
         if compute_grasps:
-            self._stop_if(should_stop, "before the grasps")
+            self._stop_if(should_stop, STEP_GRASPS)
             try:
                 grasps = plan_grasps(completion.occupancy, pose, observation.points, replace(config.grasps, seed=seed),
                                      known_occupied=observation.known_occupied, weights=weights)
@@ -447,9 +450,9 @@ class CompletionPipeline:
                               note=self._note(completion, up_disagreement, config), up_disagreement_deg=up_disagreement)
 
     @staticmethod
-    def _stop_if(should_stop: Callable[[], bool] | None, where: str) -> None:
-        if should_stop is not None and should_stop():
-            raise RunCancelled(f"stopped {where}")
+    def _stop_if(should_stop: Callable[[str], bool] | None, step: str) -> None:
+        if should_stop is not None and should_stop(step):
+            raise RunCancelled(f"stopped before the {step}")
 
     @staticmethod
     def _note(completion: Any, up_disagreement: float, config: PipelineConfig) -> str:

@@ -93,12 +93,12 @@ def load_pipeline(values: dict[str, Any]) -> CompletionPipeline:
 
 def complete_messages(pipeline: CompletionPipeline, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo,
                       depth_scale: float, num_samples: int, compute_grasps: bool,
-                      should_stop: Callable[[], bool] | None = None) -> tuple[PipelineResult, Header]:
+                      should_stop: Callable[[str], bool] | None = None) -> tuple[PipelineResult, Header]:
     """Converts one depth/mask/camera_info set and completes it; returns the result and the header outputs carry.
 
     Raises:
         ValueError: a message cannot be converted or the pipeline refuses the input (the message says why).
-        RunCancelled: ``should_stop`` returned True between the pipeline's steps.
+        RunCancelled: ``should_stop`` (told the next step, see :meth:`CompletionPipeline.run`) returned True.
     """
     depth = conversions.depth_to_metres(depth_msg, depth_scale)
     mask = conversions.mask_to_numpy(mask_msg)

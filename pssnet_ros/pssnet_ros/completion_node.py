@@ -15,6 +15,9 @@ Interface (node name ``pssnet``; relative names are remappable):
 - serves ``~/sample_completions`` (pssnet_interfaces/srv/SampleCompletions) -> /pssnet/sample_completions
   (answering STATUS_NOT_ACTIVE unless active) and ``~/get_stats`` (std_srvs/Trigger: counters as JSON, see
   :meth:`CompletionNode.stats`) in every state; the standard lifecycle services ``~/change_state``, ``~/get_state``, ...
+- is the action server ``~/sample_completions`` (pssnet_interfaces/action/SampleCompletions): the same call as
+  the service, with feedback at each step and cancellable by its client; a goal succeeds with STATUS_OK, is
+  cancelled with STATUS_CANCELLED, and is aborted with any other status.
 - publishes in continuous mode (and for every service result with ``publish_service_results``)
   ``~/completions`` (PointCloud2 x, y, z + ``sample``), ``~/known_occupied``, ``~/grasps`` (PoseArray, best
   first), ``~/grasp_candidates`` (pssnet_interfaces/msg/GraspCandidates), ``~/grasp_markers``
@@ -35,15 +38,18 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
+from pssnet_interfaces.action import SampleCompletions as SampleCompletionsAction
 from pssnet_interfaces.msg import GraspCandidates
 from pssnet_interfaces.srv import SampleCompletions
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.action import ActionServer, CancelResponse
+from rclpy.action.server import ServerGoalHandle
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
@@ -90,6 +96,7 @@ TRANSITION_WAIT_LIMIT_S = 300.0
 #: What a call stopped by a lifecycle transition answers.
 CANCELLED_MESSAGE = ("cancelled: the node left the active state during the call (deactivate, cleanup or shutdown); "
                      "call again once it is active")
+CLIENT_CANCELLED_MESSAGE = "cancelled at the client's request"
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 #: Best effort + volatile matches both best-effort (sensor data) and reliable publishers.
@@ -112,7 +119,9 @@ class StartupError(RuntimeError):
     """The node cannot start (bad parameters, missing or corrupt model); the message says why."""
 
 
-Status = SampleCompletions.Response  # the status constants: Status.STATUS_OK, ...
+Status = SampleCompletions.Response  # the status constants: Status.STATUS_OK, ... (the action's are the same)
+#: A service response or an action result: the same fields, filled the same way.
+Answer = SampleCompletions.Response | SampleCompletionsAction.Result
 
 
 class InputError(ValueError):
@@ -134,7 +143,7 @@ class CompletionNode(LifecycleNode):
         self._lock = threading.Lock()
         self._counters = {"sets_synchronised": 0, "sets_processed": 0, "sets_dropped_stale": 0,
                           "sets_dropped_invalid": 0, "sets_cancelled": 0, "service_calls": 0,
-                          "service_failures": 0}
+                          "service_failures": 0, "action_goals": 0, "action_failures": 0}
         self._latest: SyncedSet | None = None  # newest synchronised set (the service's default input)
         self.pipeline: CompletionPipeline | None = None  # loaded on configure, dropped on cleanup
         self._configure_error = ""
@@ -143,6 +152,10 @@ class CompletionNode(LifecycleNode):
         self._active = False
         # Set when the node leaves the active state: calls and topic sets in flight stop at their next step.
         self._stopping = threading.Event()
+        # Action goals executing now (they run as executor tasks, outside any callback group): a transition
+        # waits for them as for the service's call in flight.
+        self._goals_running = 0
+        self._goals_done = threading.Condition(self._lock)
         self._subscriptions: list[Subscription] = []  # the inputs, while active
         self._continuous_timer: Timer | None = None  # while active with continuous on
         try:
@@ -166,6 +179,10 @@ class CompletionNode(LifecycleNode):
         self._sample_service = self.create_service(
             SampleCompletions, "~/sample_completions", self._on_sample_completions, qos_profile=SERVICE_QOS,
             callback_group=MutuallyExclusiveCallbackGroup())
+        # The same call as an action, for progress and cancelling; like the service it lives as long as the node.
+        self._action_server = ActionServer(
+            self, SampleCompletionsAction, "~/sample_completions", execute_callback=self._execute_goal,
+            cancel_callback=lambda goal_handle: CancelResponse.ACCEPT, callback_group=MutuallyExclusiveCallbackGroup())
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # Entities with QoS event handlers (publishers, subscriptions with rclpy's default handlers) must not be
         # destroyed while the executor runs: rclpy 7.1's MultiThreadedExecutor adds event handlers to its wait set
@@ -275,7 +292,15 @@ class CompletionNode(LifecycleNode):
             self.destroy_subscription(subscription)
         self._subscriptions = []
         self._when_idle(self._sample_service, lambda service: None)
+        self._wait_for_goals()
         self._update_continuous_timer()
+
+    def _wait_for_goals(self) -> None:
+        """Waits until no action goal executes (each stops at its next step, as ``_stopping`` is set)."""
+        with self._goals_done:
+            if not self._goals_done.wait_for(lambda: self._goals_running == 0, TRANSITION_WAIT_LIMIT_S):
+                self.get_logger().error(f"an action goal did not stop within {TRANSITION_WAIT_LIMIT_S:.0f} s; "
+                                        f"going on without it")
 
     def _when_idle(self, entity: Service | Timer, action: Any) -> None:
         """Runs ``action(entity)`` once no callback of ``entity`` runs (or sends its answer), holding its
@@ -439,12 +464,17 @@ class CompletionNode(LifecycleNode):
 
     # ----------------------------------------------------------------------------------------- service
     def _run(self, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo, num_samples: int,
-             compute_grasps: bool) -> tuple[PipelineResult, Header]:
+             compute_grasps: bool, should_stop: Callable[[str], bool] | None = None) -> tuple[PipelineResult, Header]:
+        """Completes one set; stops at the pipeline's next step when the node leaves the active state or
+        ``should_stop`` (told the step) says so."""
         pipeline = self.pipeline
         if pipeline is None:
             raise InputError("the node is not configured (no model loaded)", Status.STATUS_NOT_ACTIVE)
+        def stop(step: str) -> bool:
+            return self._stopping.is_set() or bool(should_stop and should_stop(step))
+
         result, header = complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"],
-                                           num_samples, compute_grasps, self._stopping.is_set)
+                                           num_samples, compute_grasps, stop)
         self._up_disagreement_deg = result.up_disagreement_deg
         if warning := self.up_warning():
             self.get_logger().warning(f"up_vector looks wrong: {warning}", throttle_duration_sec=WARN_THROTTLE_S)
@@ -482,36 +512,70 @@ class CompletionNode(LifecycleNode):
     def _on_sample_completions(self, request: SampleCompletions.Request,
                                response: SampleCompletions.Response) -> SampleCompletions.Response:
         try:
-            return self._answer(request, response)
+            return self._answer(request, response, "service")
         finally:
             self._worked_since_trim = True
 
-    def _answer(self, request: SampleCompletions.Request,
-                response: SampleCompletions.Response) -> SampleCompletions.Response:
-        self._count("service_calls")
+    def _execute_goal(self, goal_handle: ServerGoalHandle) -> SampleCompletionsAction.Result:
+        """The action's goal: the service's answer as its result, feedback before each step, and the goal
+        stopped at its next step when the client cancels it (or the node leaves the active state)."""
+        with self._lock:
+            self._goals_running += 1
+        try:
+            t0 = time.perf_counter()
+
+            def progress(stage: str) -> bool:
+                if goal_handle.is_cancel_requested:
+                    return True
+                goal_handle.publish_feedback(SampleCompletionsAction.Feedback(
+                    stage=stage, elapsed_s=time.perf_counter() - t0))
+                return False
+
+            progress(SampleCompletionsAction.Feedback.STAGE_OBSERVATION)
+            result = self._answer(goal_handle.request, SampleCompletionsAction.Result(), "action", progress)
+            if result.status == Status.STATUS_OK:
+                goal_handle.succeed()
+            elif result.status == Status.STATUS_CANCELLED and goal_handle.is_cancel_requested:
+                result.message = CLIENT_CANCELLED_MESSAGE
+                goal_handle.canceled()
+            else:
+                goal_handle.abort()
+            return result
+        finally:
+            self._worked_since_trim = True
+            with self._lock:
+                self._goals_running -= 1
+                self._goals_done.notify_all()
+
+    def _answer(self, request: SampleCompletions.Request | SampleCompletionsAction.Goal, response: Answer,
+                kind: str, should_stop: Callable[[str], bool] | None = None) -> Answer:
+        """Answers a service request or an action goal (``kind``: "service" | "action", which counters count it)."""
+        calls, failures = ("service_calls", "service_failures") if kind == "service" else ("action_goals",
+                                                                                            "action_failures")
+        self._count(calls)
         t0 = time.perf_counter()
         if not self._active:
             state = "inactive" if self.pipeline is not None else "unconfigured"
-            return self._refuse(response, Status.STATUS_NOT_ACTIVE,
+            return self._refuse(response, failures, Status.STATUS_NOT_ACTIVE,
                                 f"the node is {state}: it serves completions only while active (lifecycle "
                                 f"configure, then activate)")
         try:
             depth_msg, mask_msg, info_msg = self._request_input(request)
             response.header = depth_msg.header
             result, header = self._run(depth_msg, mask_msg, info_msg, int(request.num_samples),
-                                       bool(request.compute_grasps))
+                                       bool(request.compute_grasps), should_stop)
         except RunCancelled:
-            return self._refuse(response, Status.STATUS_CANCELLED, CANCELLED_MESSAGE)
+            return self._refuse(response, failures, Status.STATUS_CANCELLED, CANCELLED_MESSAGE)
         except ValueError as error:
             status = (error.status if isinstance(error, InputError) else Status.STATUS_MODEL_FAILURE
                       if isinstance(error, ModelOutputError) else Status.STATUS_INVALID_INPUT)
-            count = self._count("service_failures")
-            self.get_logger().warning(f"sample_completions refused ({count} so far): {error}",
+            count = self._count(failures)
+            self.get_logger().warning(f"sample_completions ({kind}) refused ({count} so far): {error}",
                                       throttle_duration_sec=WARN_THROTTLE_S)
-            return self._refuse(response, status, str(error), counted=True)
+            return self._refuse(response, failures, status, str(error), counted=True)
         except Exception as error:  # an answer even for a bug: the caller must not hang
-            self.get_logger().error(f"sample_completions failed: {traceback.format_exc()}")
-            return self._refuse(response, Status.STATUS_INTERNAL_ERROR,
+            self.get_logger().error(f"sample_completions ({kind}) failed: {traceback.format_exc()}")
+            return self._refuse(response, failures, Status.STATUS_INTERNAL_ERROR,
                                 f"internal error: {type(error).__name__}: {error}")
         fill_response(response, result, header)
         response.status = Status.STATUS_OK
@@ -526,10 +590,9 @@ class CompletionNode(LifecycleNode):
                             + (f"; {result.note}" if result.note else ""))
         return response
 
-    def _refuse(self, response: SampleCompletions.Response, status: int, message: str,
-                counted: bool = False) -> SampleCompletions.Response:
+    def _refuse(self, response: Answer, failures: str, status: int, message: str, counted: bool = False) -> Answer:
         if not counted:
-            self._count("service_failures")
+            self._count(failures)
         response.status, response.success, response.message = status, False, message
         return response
 
@@ -562,7 +625,8 @@ class CompletionNode(LifecycleNode):
         ``sets_synchronised`` (all synchronised sets), ``sets_processed`` (completed and published in continuous
         mode), ``sets_dropped_superseded`` / ``_stale`` / ``_invalid``, ``sets_pending`` and ``sets_in_progress``
         (0 or 1 each), ``sets_cancelled`` (stopped by a lifecycle transition), ``service_calls``,
-        ``service_failures``, ``messages_received``, ``messages_unmatched``, and ``latest_set_stamp_ns`` (stamp
+        ``service_failures``, ``action_goals``, ``action_failures`` (not succeeded: refused, aborted or cancelled),
+        ``messages_received``, ``messages_unmatched``, and ``latest_set_stamp_ns`` (stamp
         of the newest synchronised set, 0 before the first). While continuous mode is on, every synchronised set
         is accounted for: synchronised = processed + superseded + stale + invalid + cancelled + pending +
         in_progress.
@@ -590,7 +654,8 @@ def usage() -> str:
             "A lifecycle node: with autostart (default) it configures and activates itself; with\n"
             "autostart:=false it waits for configure/activate on /pssnet/change_state.\n\n"
             "Node name: pssnet. Subscribes: depth, mask, camera_info (remappable). Serves:\n"
-            "/pssnet/sample_completions (pssnet_interfaces/srv/SampleCompletions), /pssnet/get_stats.\n"
+            "/pssnet/sample_completions (pssnet_interfaces/srv/SampleCompletions, and the action of the same\n"
+            "name and type: feedback, cancellable), /pssnet/get_stats.\n"
             "Publishes (continuous mode): /pssnet/completions, /pssnet/known_occupied, /pssnet/grasps,\n"
             "/pssnet/grasp_candidates, /pssnet/grasp_markers, /diagnostics (1 Hz).\n\nParameters:\n"
             + markdown_table() + "\n")

@@ -3,6 +3,8 @@
     with RosClient(domain_id) as ros:
         service = ros.service(SampleCompletions, SAMPLE_SERVICE)
         response = ros.call(service, SampleCompletions.Request(num_samples=5))
+        action = ros.action(SampleCompletionsAction, SAMPLE_SERVICE)     # the same call as an action
+        status, result = ros.goal_result(ros.send_goal(action, SampleCompletionsAction.Goal(num_samples=5)))
         counters = ros.stats()
 
 Its own rclpy context (so several can live in one process next to a node under test), spun by a background
@@ -41,6 +43,17 @@ def wait_until(condition: Callable[[], T], timeout: float, what: str, interval: 
         if time.monotonic() > deadline:
             raise TimeoutError(f"{what}: not within {timeout:g} s")
         time.sleep(interval)
+
+
+def _result(future: Any, timeout: float, what: str) -> Any:
+    """Waits for an rclpy future (an event, not a poll); its result, or TimeoutError("{what} within ...")."""
+    done = threading.Event()
+    future.add_done_callback(lambda _: done.set())
+    if not done.wait(timeout):
+        raise TimeoutError(f"{what} within {timeout:g} s")
+    if future.exception() is not None:
+        raise future.exception()
+    return future.result()
 
 
 class RosClient:
@@ -122,15 +135,41 @@ class RosClient:
     @staticmethod
     def call(client: Any, request: Any, timeout: float = 60.0) -> Any:
         """Sends ``request`` and waits for the response (TimeoutError after ``timeout`` s)."""
-        done = threading.Event()
         future = client.call_async(request)
-        future.add_done_callback(lambda _: done.set())
-        if not done.wait(timeout):
+        try:
+            return _result(future, timeout, f"no response from {client.srv_name}")
+        except TimeoutError:
             client.remove_pending_request(future)
-            raise TimeoutError(f"no response from {client.srv_name} within {timeout:g} s")
-        if future.exception() is not None:
-            raise future.exception()
-        return future.result()
+            raise
+
+    def action(self, action_type: type, name: str, timeout: float = 30.0) -> Any:
+        """An action client of ``name`` whose server has been discovered (waits up to ``timeout`` s)."""
+        from rclpy.action import ActionClient
+
+        client = ActionClient(self.node, action_type, name)
+        if not client.wait_for_server(timeout_sec=timeout):
+            client.destroy()
+            raise TimeoutError(f"action server {name} not discovered within {timeout:g} s")
+        return client
+
+    @staticmethod
+    def send_goal(client: Any, goal: Any, feedback: Callable[[Any], None] | None = None,
+                  timeout: float = 30.0) -> Any:
+        """Sends ``goal``; returns its (accepted or rejected) goal handle. ``feedback`` gets each feedback message."""
+        on_feedback = None if feedback is None else (lambda message: feedback(message.feedback))
+        return _result(client.send_goal_async(goal, feedback_callback=on_feedback), timeout,
+                       "no goal response from the action server")
+
+    @staticmethod
+    def goal_result(goal_handle: Any, timeout: float = 60.0) -> tuple[int, Any]:
+        """Waits for an accepted goal's end: (its action_msgs/GoalStatus code, its result)."""
+        response = _result(goal_handle.get_result_async(), timeout, "no result of the goal")
+        return response.status, response.result
+
+    @staticmethod
+    def cancel_goal(goal_handle: Any, timeout: float = 30.0) -> Any:
+        """Asks the server to cancel the goal; returns its action_msgs/CancelGoal response."""
+        return _result(goal_handle.cancel_goal_async(), timeout, "no answer to the cancel request")
 
     def stats(self, timeout: float = 30.0) -> dict[str, int]:
         """The node's counters (``/pssnet/get_stats``)."""
