@@ -306,6 +306,33 @@ def test_continuous_mode_accounts_for_every_set_over_a_minute(ros, camera):
     check_outputs(outputs_of(ros, stamps, d["sets_processed"]), stamps, d["sets_processed"])
 
 
+def test_qos_overrides_and_rclpy_parameters(tmp_path):
+    """The inputs' and outputs' QoS follow ``qos_overrides.*`` at start-up (read-only afterwards), and rclpy's own
+    parameters (use_sim_time) can be set like on any node."""
+    path, _ = node_checkpoint(tmp_path)
+    overrides = {"qos_overrides./depth.subscription.reliability": "reliable",
+                 "qos_overrides./pssnet/grasps.publisher.reliability": "best_effort"}
+    with NodeUnderTest(domain_for(23), model_path=path, threads=1, **overrides) as node:
+        graph = node.ros.node
+
+        def endpoints(info_by_topic: Callable, topic: str) -> dict:
+            return {i.node_name: i.qos_profile.reliability for i in info_by_topic(topic) if i.node_name == "pssnet"}
+
+        def reliability(info_by_topic: Callable, topic: str) -> ReliabilityPolicy:
+            found = wait_until(lambda: endpoints(info_by_topic, topic), TIMEOUT, f"the node's endpoint on {topic}")
+            return found["pssnet"]
+
+        assert reliability(graph.get_subscriptions_info_by_topic, "/depth") == ReliabilityPolicy.RELIABLE
+        assert reliability(graph.get_subscriptions_info_by_topic, "/mask") == ReliabilityPolicy.BEST_EFFORT
+        assert reliability(graph.get_publishers_info_by_topic, "/pssnet/grasps") == ReliabilityPolicy.BEST_EFFORT
+        assert reliability(graph.get_publishers_info_by_topic, "/pssnet/completions") == ReliabilityPolicy.RELIABLE
+        assert node.ros.set_parameters(use_sim_time=True)[0].successful
+        refused = node.ros.set_parameters(**{"qos_overrides./depth.subscription.reliability": "best_effort"})[0]
+        assert not refused.successful and "read-only" in refused.reason
+        assert node.ros.change_state("deactivate") and node.ros.change_state("activate")  # inputs made again
+        assert reliability(graph.get_subscriptions_info_by_topic, "/depth") == ReliabilityPolicy.RELIABLE
+
+
 def test_sigint_shutdown_is_clean(node):
     files = dict(node.shm_files)
     assert node.stop() == 0, node.output[-3000:]

@@ -30,6 +30,7 @@ All outputs carry the input's header. The node only converts messages; the work 
 
 from __future__ import annotations
 
+import copy
 import faulthandler
 import json
 import math
@@ -57,6 +58,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.service import Service
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
@@ -80,7 +82,7 @@ from pssnet_ros.completion_io import (
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
 from pssnet_ros.heap import trim_heap
 from pssnet_ros.newest_slot import NewestSlot
-from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, check_values, markdown_table, pipeline_config
+from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, SPECS, check_values, markdown_table, pipeline_config
 from pssnet_ros.rclpy_fixes import refuse_unknown_transitions
 from pssnet_ros.shm import clean_stale_shm
 from pssnet_ros.spinning import spin_until_shutdown
@@ -105,6 +107,11 @@ INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=Rel
 #: Reliable publishers match reliable and best-effort subscribers alike.
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
+#: The inputs' and outputs' history, depth and reliability can be overridden at start-up, as ROS 2 drivers allow:
+#: read-only parameters ``qos_overrides.<resolved topic>.subscription|publisher.<policy>`` (a params file, or
+#: ``-p``), e.g. ``qos_overrides./camera/depth/image_rect.subscription.reliability: reliable``. rclpy applies
+#: them to the profile it is given, in place: each entity gets a copy of the shared defaults.
+QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
 #: Requests wait in DDS while the node answers one at a time; the default services QoS keeps only the last 10,
 #: so with more waiting clients the oldest requests were dropped unanswered (16 clients: 41 of 755 lost,
 #: RELIABILITY.md). 64 waiting 640x480 requests hold about 100 MB at most.
@@ -189,7 +196,8 @@ class CompletionNode(LifecycleNode):
         # without holding them, and one destroyed meanwhile raised InvalidHandle out of spin() (1 cleanup in 55).
         # So the lifecycle publishers live as long as the node (enabled only while active), and the inputs,
         # created on activate and destroyed on deactivate, go without event handlers (below).
-        self._outputs = {name: self.create_lifecycle_publisher(msg_type, f"~/{name}", OUTPUT_QOS)
+        self._outputs = {name: self.create_lifecycle_publisher(msg_type, f"~/{name}", copy.copy(OUTPUT_QOS),
+                                                               qos_overriding_options=QOS_OVERRIDES)
                          for name, msg_type in OUTPUT_TYPES.items()}
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics, callback_group=self._topics_group)
         if self._values["autostart"]:
@@ -248,8 +256,8 @@ class CompletionNode(LifecycleNode):
         # volatile subscription cannot meet, and of a publisher of another type on the topic.
         no_handlers = SubscriptionEventCallbacks(use_default_callbacks=False)
         self._subscriptions = [self.create_subscription(
-            msg_type, stream, lambda m, stream=stream: self._on_input(stream, m), INPUT_QOS,
-            callback_group=self._topics_group, event_callbacks=no_handlers)
+            msg_type, stream, lambda m, stream=stream: self._on_input(stream, m), copy.copy(INPUT_QOS),
+            callback_group=self._topics_group, event_callbacks=no_handlers, qos_overriding_options=QOS_OVERRIDES)
             for stream, msg_type in (("depth", Image), ("mask", Image), ("camera_info", CameraInfo))]
         with self._lock:
             self._active = True
@@ -360,7 +368,10 @@ class CompletionNode(LifecycleNode):
         self.pipeline = None
 
     # -------------------------------------------------------------------------------------- parameters
+    # Only the node's own parameters (SPECS) are checked and applied here; rclpy's (use_sim_time, the read-only
+    # qos_overrides.*) pass these callbacks too, and rclpy has its own rules for them.
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        params = [p for p in params if p.name in SPECS]
         values = dict(self._values)
         for param in params:
             values[param.name] = param.value
@@ -378,6 +389,9 @@ class CompletionNode(LifecycleNode):
         return SetParametersResult(successful=reason is None, reason=reason or "")
 
     def _apply_parameters(self, params: list[Parameter]) -> None:
+        params = [p for p in params if p.name in SPECS]
+        if not params:
+            return
         for param in params:
             self._values[param.name] = param.value
         self._values["up_vector"] = [float(v) for v in self._values["up_vector"]]

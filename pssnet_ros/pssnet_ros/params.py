@@ -317,4 +317,12 @@ def default_yaml() -> str:
                              "set before configure" if spec.configure_only else "") if n]
         lines.append(f"    # {spec.description}" + (f" ({'; '.join(notes)})" if notes else ""))
         lines.append(f"    {spec.name}: {literal(spec.default)}")
+    lines += ["    # QoS of the inputs and outputs, read at start-up (history, depth, reliability), by resolved topic",
+              "    # name; by default the inputs are best effort (sensor-data and reliable publishers both connect)",
+              "    # and the outputs reliable.",
+              "    # qos_overrides:",
+              "    #   /camera/depth/image_rect:",
+              "    #     subscription:",
+              "    #       reliability: reliable",
+              "    #       depth: 5"]
     return "\n".join(lines) + "\n"
