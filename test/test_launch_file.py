@@ -34,7 +34,7 @@ class Recorded:
 def stand_in_modules() -> dict[str, types.ModuleType]:
     names = {"launch": ["LaunchDescription"], "launch.actions": ["DeclareLaunchArgument"],
              "launch.conditions": ["IfCondition"],
-             "launch.substitutions": ["LaunchConfiguration", "PathJoinSubstitution"],
+             "launch.substitutions": ["LaunchConfiguration", "PathJoinSubstitution", "PythonExpression"],
              "launch_ros.actions": ["Node"], "launch_ros.parameter_descriptions": ["ParameterValue"],
              "launch_ros.substitutions": ["FindPackageShare"], "launch_ros": []}
     modules = {}
@@ -55,6 +55,29 @@ def description(monkeypatch):
     return launch_file.generate_launch_description()
 
 
+def perform(substitution, arguments: dict[str, str]) -> str:
+    """What ``ros2 launch`` makes of a recorded substitution, given the launch arguments' values."""
+    if isinstance(substitution, str):
+        return substitution
+    if isinstance(substitution, list):
+        return "".join(perform(s, arguments) for s in substitution)
+    kind = type(substitution).__name__
+    if kind == "LaunchConfiguration":
+        return arguments[substitution.args[0]]
+    if kind == "PythonExpression":
+        return str(eval(perform(substitution.args[0], arguments)))  # launch evaluates it so, too
+    raise TypeError(kind)
+
+
+def nodes_of(entities, package: str) -> list[dict]:
+    return [e.kwargs for e in entities if type(e).__name__ == "Node" and e.kwargs["package"] == package]
+
+
+def launch_arguments(entities, **given: str) -> dict[str, str]:
+    defaults = {e.args[0]: e.kwargs["default_value"] for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
+    return {**defaults, **given}
+
+
 def test_the_node_its_parameters_and_remappings(description):
     entities = description.args[0]
     nodes = [e for e in entities if type(e).__name__ == "Node" and e.kwargs["package"] == "pssnet_ros"]
@@ -63,10 +86,11 @@ def test_the_node_its_parameters_and_remappings(description):
     assert node["package"] == "pssnet_ros" and node["name"] == "pssnet"
     assert f"{node['executable']} = pssnet_ros.completion_node:main" in (PACKAGE / "setup.py").read_text()
     # Every input the node subscribes to is remapped by a launch argument of the same name, and nothing else.
-    remapped = {source: target.args[0] for source, target in node["remappings"]}
-    assert set(remapped) == set(STREAMS) and all(remapped[s] == s for s in STREAMS)
+    given = {"depth": "/cam/depth/image_rect_raw", "mask": "/seg/mask", "camera_info": "/cam/depth/camera_info"}
+    remapped = {source: perform(target, launch_arguments(entities, **given)) for source, target in node["remappings"]}
+    assert remapped == given
     arguments = {e.args[0]: e.kwargs for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
-    assert set(arguments) == {"namespace", "params_file", "autostart", "rviz", *STREAMS}
+    assert set(arguments) == {"namespace", "params_file", "autostart", "rviz", "compressed_depth", *STREAMS}
     assert all(arguments[s]["default_value"] == s for s in STREAMS)  # defaults: the node's own names
     assert node["namespace"].args[0] == "namespace"
     # The parameter file: the installed config/completion_node.yaml, then autostart from its argument as a bool.
@@ -103,3 +127,20 @@ def test_rviz_starts_on_request_with_the_installed_config_that_draws_the_node_ou
                       OUTPUT_TOPICS["known_occupied"]: "rviz_default_plugins/PointCloud2",
                       OUTPUT_TOPICS["grasp_markers"]: "rviz_default_plugins/MarkerArray"}
     assert view["Global Options"]["Fixed Frame"] == "camera_depth_optical_frame"  # what the outputs carry
+
+
+def test_compressed_depth_is_decompressed_on_request_and_fed_to_the_node(description):
+    entities = description.args[0]
+    (node,) = nodes_of(entities, "pssnet_ros")
+    (republish,) = nodes_of(entities, "image_transport")
+    assert republish["executable"] == "republish" and republish["condition"].args[0].args[0] == "compressed_depth"
+    assert republish["parameters"] == [{"in_transport": "compressedDepth", "out_transport": "raw"}]
+    arguments = launch_arguments(entities, depth="/cam/depth/image_rect_raw")
+    assert arguments["compressed_depth"] == "false"
+    for flag in ("true", "True", "false"):
+        arguments["compressed_depth"] = flag
+        node_depth = perform(dict(node["remappings"])["depth"], arguments)
+        remaps = {source: perform(target, arguments) for source, target in republish["remappings"]}
+        assert remaps["in/compressedDepth"] == "/cam/depth/image_rect_raw/compressedDepth"
+        compressed = flag.lower() == "true"
+        assert node_depth == (remaps["out"] if compressed else "/cam/depth/image_rect_raw")
