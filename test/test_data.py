@@ -173,7 +173,8 @@ def test_ground_truth_is_the_filled_surface_and_holds_every_observed_point():
     obs = view.observe(GridConfig.for_size(GRID))
     occupancy = ground_truth_occupancy(shape, view.object_pose, obs.pose, view.camera_pose)
     # Every voxel whose centre is inside the solid (queried over the whole grid, not just the object's block).
-    world = obs.pose.all_centres() @ view.camera_pose[:3, :3].T + view.camera_pose[:3, 3]
+    every_voxel = obs.pose.occupied_centres(np.ones((obs.pose.size,) * 3, bool))
+    world = every_voxel @ view.camera_pose[:3, :3].T + view.camera_pose[:3, 3]
     local = (world - view.object_pose[:3, 3]) @ view.object_pose[:3, :3]
     centre_inside = ObjectScene(shape).occupancy(local).reshape(occupancy.shape)
     assert centre_inside.sum() > 100 and not (centre_inside & ~occupancy).any()

@@ -56,7 +56,7 @@ def test_true_and_turned_handles_are_found_where_they_are(mug):
 def test_a_mug_without_its_handle_has_none(mug):
     shape, grid, grids = mug
     body = grids[0].copy()
-    centres = grid.all_centres().reshape(32, 32, 32, 3)
+    centres = grid.occupied_centres(np.ones((grid.size,) * 3, bool)).reshape(32, 32, 32, 3)
     body[np.hypot(centres[..., 0], centres[..., 1]) > HandleGeometry.of(shape).body_radius + 0.5 * VOXEL] = False
     az = handle_azimuths(np.stack([body, np.zeros_like(body)]), grid, np.eye(4), HandleGeometry.of(shape))
     assert np.isnan(az).all()

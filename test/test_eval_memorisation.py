@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pssnet_core.data.build import build
-from pssnet_core.data.store import DatasetReader
+from pssnet_core.data.store import DatasetReader, finalize, write_shard
 from pssnet_core.evaluation.experiment import write_report
 from pssnet_core.evaluation.memorisation import MemorisationConfig, dataset_roots, run_memorisation
 from pssnet_core.evaluation.memorisation_report import memorisation_report
@@ -66,7 +66,14 @@ def random_shapes(rng: np.random.Generator, count: int) -> np.ndarray:
     return out
 
 
-def test_prefilter_finds_the_exact_nearest_on_a_small_set():
+def index_of(grids: np.ndarray, root) -> TrainingIndex:
+    """The search index of ``grids`` written as a one-shard training set under ``root``."""
+    write_shard(root, 0, [{"occupancy": grid, "identity": str(k)} for k, grid in enumerate(grids)])
+    finalize(root, {"grid_size": grids.shape[1], "voxel_size": VOXEL})
+    return TrainingIndex.from_reader(DatasetReader(root), SearchConfig(top_k=8))
+
+
+def test_prefilter_finds_the_exact_nearest_on_a_small_set(tmp_path):
     rng = np.random.default_rng(0)
     train = random_shapes(rng, 300)
     # Queries: unseen shapes of the same kinds, and training shapes with a tenth of their voxels moved.
@@ -78,7 +85,8 @@ def test_prefilter_finds_the_exact_nearest_on_a_small_set():
         grid[tuple(drop.T)] = False
         grid[tuple(np.clip(drop + rng.integers(-1, 2, size=drop.shape), 0, N - 1).T)] = True
     queries = np.concatenate([novel, noisy])
-    index = TrainingIndex.from_grids(train, VOXEL, SearchConfig(top_k=8))
+    index = index_of(train, tmp_path)
+    assert index.identities[:2] == ["0", "1"] and len(index) == len(train)
     exact, exact_at = brute_force_nearest(queries, index)
     # query_chunk 1: each query sees its own top 8 only (no help from the candidates of other queries).
     found, found_at = nearest_training(queries, index, SearchConfig(top_k=8, query_chunk=1))

@@ -6,15 +6,14 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from pssnet_core.evaluation.metrics import (
     MetricsError,
-    aggregate,
-    chamfer_distance,
+    ObservationMetrics,
     chamfer_matrix,
     distance_fields,
     metrics_from_distances,
-    observation_metrics,
 )
 
 N = 8
@@ -28,13 +27,30 @@ def grid(*cells) -> np.ndarray:
     return g
 
 
+def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """The reference: chamfer distance of two point clouds by KD-tree, mean NN a->b + mean NN b->a."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if len(a) == 0 or len(b) == 0:
+        raise ValueError("chamfer distance of an empty point cloud is undefined")
+    return float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+
+
+def observation_metrics(samples: np.ndarray, ground_truth: np.ndarray, plausible: np.ndarray) -> ObservationMetrics:
+    """M_A, M_C, M_P, M_PD of one observation as the evaluation computes them: the ground truth is a member of
+    the plausible set (added when no member equals it) and the last column of the distance matrix."""
+    if not any(np.array_equal(p, ground_truth) for p in plausible):
+        plausible = np.concatenate([ground_truth[None], plausible])
+    d = chamfer_matrix(samples, np.concatenate([plausible, ground_truth[None]]), VOXEL)
+    return metrics_from_distances(d[:, :-1], d[:, -1])
+
+
 def test_chamfer_point_clouds_by_hand():
     a = np.array([[0.0, 0.0, 0.0]])
     b = np.array([[3.0, 4.0, 0.0]])
     assert chamfer_distance(a, b) == pytest.approx(10.0)  # 5 each way
     # a = {0, 1}, b = {0}: a->b mean (0 + 1) / 2, b->a 0.
     assert chamfer_distance(np.array([[0.0, 0, 0], [1.0, 0, 0]]), np.array([[0.0, 0, 0]])) == pytest.approx(0.5)
-    with pytest.raises(MetricsError):
+    with pytest.raises(ValueError):
         chamfer_distance(np.zeros((0, 3)), b)
 
 
@@ -74,7 +90,7 @@ def test_metrics_by_hand():
     p = grid((4, 0, 0))
     s1 = grid((1, 0, 0))
     s2 = grid((2, 0, 0))
-    m = observation_metrics(np.stack([s1, s2]), g, np.stack([g, p]), VOXEL)
+    m = observation_metrics(np.stack([s1, s2]), g, np.stack([g, p]))
     # d = 2 * |dx| voxels * 10 mm: d(s1,g)=20, d(s2,g)=40, d(s1,p)=60, d(s2,p)=40.
     assert m.best_accuracy_mm == pytest.approx(20.0)
     assert m.coverage_mm == pytest.approx((20.0 + 40.0) / 2)  # g: min(20, 40); p: min(60, 40)
@@ -86,7 +102,7 @@ def test_metrics_by_hand():
 def test_samples_collapsed_on_truth_miss_coverage():
     g = grid((0, 0, 0))
     p = grid((5, 0, 0))
-    m = observation_metrics(np.stack([g, g, g]), g, np.stack([g, p]), VOXEL)
+    m = observation_metrics(np.stack([g, g, g]), g, np.stack([g, p]))
     assert m.best_accuracy_mm == 0.0
     assert m.plausibility_mm == 0.0
     assert m.coverage_mm == pytest.approx((0.0 + 100.0) / 2)
@@ -95,24 +111,22 @@ def test_samples_collapsed_on_truth_miss_coverage():
 def test_ground_truth_added_when_missing_from_plausible():
     g = grid((0, 0, 0))
     p = grid((2, 0, 0))
-    m = observation_metrics(np.stack([p]), g, np.stack([p]), VOXEL)
+    m = observation_metrics(np.stack([p]), g, np.stack([p]))
     assert m.num_plausible == 2
     assert m.coverage_mm == pytest.approx((40.0 + 0.0) / 2)
 
 
-def test_metrics_from_distances_and_aggregate():
+def test_metrics_from_distances():
     m1 = metrics_from_distances(np.array([[0.001, 0.003], [0.002, 0.001]]), np.array([0.001, 0.002]))
     assert m1.best_accuracy_mm == pytest.approx(1.0)
     assert m1.coverage_mm == pytest.approx(1.0)
     assert m1.plausibility_mm == pytest.approx(1.0)
     m2 = metrics_from_distances(np.array([[0.003]]), np.array([0.003]))
-    agg = aggregate([m1, m2])
-    assert agg["count"] == 2
-    assert agg["plausible_diversity_mm"] == pytest.approx((2.0 + 6.0) / 2)
+    assert (m1.plausible_diversity_mm, m2.plausible_diversity_mm) == pytest.approx((2.0, 6.0))
     with pytest.raises(MetricsError):
         metrics_from_distances(np.zeros((0, 1)), np.zeros(0))
     with pytest.raises(MetricsError):
-        observation_metrics(np.zeros((2, 4, 4)), np.zeros((N, N, N)), None, VOXEL)
+        chamfer_matrix(np.zeros((2, 4, 4)), np.zeros((N, N, N)), VOXEL)
 
 
 def test_grid_chamfer_over_boxes_equals_whole_fields_and_kdtree():

@@ -12,12 +12,20 @@ from pssnet_core.evaluation.observation_model import (
     MultiDeltaView,
     ObservationModelConfig,
     ObservationModelError,
+    PlausibilityResult,
     depth_gradient_mask,
-    is_plausible,
 )
 from pssnet_core.geometry import CameraIntrinsics
 
 K = CameraIntrinsics(width=40, height=40, fx=100.0, fy=100.0, cx=19.5, cy=19.5)
+
+
+def is_plausible(view: DepthView, raycaster: MeshRaycaster, camera_from_object: np.ndarray,
+                 config: ObservationModelConfig | None = None) -> PlausibilityResult:
+    """Alg. 1 at one delta, through the evaluation's own path (no early rejection: every result is complete)."""
+    config = config or ObservationModelConfig()
+    return MultiDeltaView(view, config, (config.delta,), sparse_pixels=0).judge(raycaster, camera_from_object)[
+        config.delta]
 
 
 def pose(t=(0.0, 0.0, 0.0)) -> np.ndarray:

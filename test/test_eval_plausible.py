@@ -153,7 +153,7 @@ def test_transformed_truth_lands_on_reference(tiny_set):
     # surface voxels, which hold every observed voxel.
     own = occ[0]
     pose, placed = views[3].grid_pose, views[3].object_pose
-    local = (pose.all_centres() - placed[:3, 3]) @ placed[:3, :3]
+    local = (pose.occupied_centres(np.ones((pose.size,) * 3, bool)) - placed[:3, 3]) @ placed[:3, :3]
     centre_inside = MeshRaycaster(*table("bump")).inside(local).reshape(own.shape)
     assert centre_inside.sum() > 50 and not (centre_inside & ~own).any()
     assert not (observed & ~own).any()

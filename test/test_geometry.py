@@ -179,7 +179,7 @@ def test_free_space_is_the_windowed_minimum_over_the_whole_image(column):
     usable = valid_depth(depth)
     free = carve_free_space(depth, usable, K, pose)
 
-    centres = pose.all_centres()
+    centres = pose.occupied_centres(np.ones((pose.size,) * 3, bool))
     z = centres[:, 2]
     half_diagonal = 0.5 * np.sqrt(3.0) * pose.voxel_size
     radius = min(int(np.ceil(K.fx * half_diagonal / max(z.min(), 1e-3))), 8)

@@ -6,11 +6,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from pssnet_core.data.store import DatasetWriter
+from pssnet_core.data.store import DatasetError, finalize, write_shard
 from pssnet_core.models import CompletionModel, build_model, default_config
 
 TINY = {"channels": [4, 8, 8, 16], "latent_dim": 32}
@@ -19,6 +20,36 @@ TINY_PSSNET = {**TINY, "flow_hidden": 32, "flow_couplings": 4, "flow_pretrain_st
 TINY_GAN = {"channels": [4, 8, 8, 16], "latent_dim": 32, "disc_channels": [4, 8]}
 TINY_RECGAN = {"channels": [4, 8, 8, 16], "bottleneck_dim": 16, "disc_channels": [4, 8]}
 TINY_BY_MODEL = {"pssnet": TINY_PSSNET, "vae": TINY, "vae_gan": TINY_GAN, "recgan": TINY_RECGAN}
+
+
+class DatasetWriter:
+    """Sequential writer: buffers samples and writes a shard every ``shard_size`` samples."""
+
+    def __init__(self, root: str | Path, meta: dict[str, Any], shard_size: int = 256) -> None:
+        if shard_size < 1:
+            raise DatasetError(f"shard_size must be positive, got {shard_size}")
+        self.root = Path(root)
+        self.meta = dict(meta)
+        self.shard_size = shard_size
+        self._buffer: list[dict[str, Any]] = []
+        self._next_shard = 0
+
+    def add(self, sample: dict[str, Any]) -> None:
+        """Adds one sample (arrays and JSON-serialisable values)."""
+        self._buffer.append(sample)
+        if len(self._buffer) >= self.shard_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._buffer:
+            write_shard(self.root, self._next_shard, self._buffer)
+            self._next_shard += 1
+            self._buffer = []
+
+    def close(self) -> int:
+        """Writes the last shard and the index; returns the number of samples."""
+        self._flush()
+        return finalize(self.root, self.meta)
 
 
 def tiny_model(name: str = "pssnet", grid: int = 16, **overrides) -> CompletionModel:

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_models_helpers import DatasetWriter
 
-from pssnet_core.data.store import DatasetError, DatasetReader, DatasetWriter, finalize, shard_exists, write_shard
+from pssnet_core.data.store import DatasetError, DatasetReader, finalize, shard_exists, write_shard
 
 
 def make_sample(i: int, n: int = 8) -> dict:

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_models_helpers import cuboid_sample, tiny_model
+from test_models_helpers import DatasetWriter, cuboid_sample, tiny_model
 
-from pssnet_core.data.store import DatasetReader, DatasetWriter
+from pssnet_core.data.store import DatasetReader
 from pssnet_core.models import StepContext
 from pssnet_core.models.checkpoint import save_checkpoint
 from pssnet_core.training import cli as training_cli

@@ -395,12 +395,6 @@ class GridPose:
         centres += self.origin.astype(np.float32)
         return np.split(centres, np.cumsum(np.bincount(grid, minlength=count))[:-1])
 
-    def all_centres(self) -> np.ndarray:
-        """Camera-frame centres of every voxel, (N^3, 3) in C order of (i, j, k)."""
-        axis = np.arange(self.size) + 0.5
-        grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
-        return self.grid_to_camera(grid)
-
     def to_matrix(self) -> np.ndarray:
         """4x4 transform from grid coordinates scaled to metres to the camera frame."""
         t = np.eye(4)

@@ -133,38 +133,8 @@ def _read_index(root: Path) -> dict[str, Any]:
         raise DatasetError(f"{index_path} is corrupt: {error}") from error
 
 
-class DatasetWriter:
-    """Sequential writer: buffers samples and writes a shard every ``shard_size`` samples."""
-
-    def __init__(self, root: str | Path, meta: dict[str, Any], shard_size: int = 256) -> None:
-        if shard_size < 1:
-            raise DatasetError(f"shard_size must be positive, got {shard_size}")
-        self.root = Path(root)
-        self.meta = dict(meta)
-        self.shard_size = shard_size
-        self._buffer: list[dict[str, Any]] = []
-        self._next_shard = 0
-
-    def add(self, sample: dict[str, Any]) -> None:
-        """Adds one sample (arrays and JSON-serialisable values)."""
-        self._buffer.append(sample)
-        if len(self._buffer) >= self.shard_size:
-            self._flush()
-
-    def _flush(self) -> None:
-        if self._buffer:
-            write_shard(self.root, self._next_shard, self._buffer)
-            self._next_shard += 1
-            self._buffer = []
-
-    def close(self) -> int:
-        """Writes the last shard and the index; returns the number of samples."""
-        self._flush()
-        return finalize(self.root, self.meta)
-
-
 class DatasetReader:
-    """Reads a dataset directory written by :class:`DatasetWriter` or :func:`write_shard` + :func:`finalize`.
+    """Reads a dataset directory written by :func:`write_shard` + :func:`finalize`.
 
     ``root`` may also be several dataset directories (a sequence, or one string of paths joined by commas):
     they are read as one dataset, their samples numbered in the order given (e.g. mugs then ycb, to train one

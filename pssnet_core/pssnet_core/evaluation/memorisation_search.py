@@ -28,7 +28,6 @@ force and the report says how often the prefilter found the exact nearest.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -131,21 +130,6 @@ class TrainingIndex:
 
     def __len__(self) -> int:
         return len(self.packed)
-
-    @classmethod
-    def from_grids(cls, grids: np.ndarray, voxel_size: float, config: SearchConfig | None = None,
-                   identities: Sequence[str] | None = None, families: Sequence[str] | None = None) -> TrainingIndex:
-        """An index of in-memory grids (K, N, N, N) (tests, small sets)."""
-        config = config or SearchConfig()
-        grids = np.asarray(grids, dtype=bool)
-        n = grids.shape[1]
-        pool = config.pool_for(n)
-        features = pooled_features(grids, pool, blur=config.blur).astype(np.float16)
-        ids = list(identities) if identities is not None else [str(k) for k in range(len(grids))]
-        fams = list(families) if families is not None else [""] * len(grids)
-        return cls(grid_size=n, voxel_size=float(voxel_size), pool=pool, blur=config.blur,
-                   packed=np.packbits(grids.reshape(len(grids), -1), axis=1), features=features,
-                   norms=_squared_norms(features), identities=ids, families=fams)
 
     @classmethod
     def from_reader(cls, reader: Any, config: SearchConfig | None = None,

@@ -9,8 +9,8 @@ observation's), so the nearest-neighbour distance from any voxel to cloud B is B
 transform (``scipy.ndimage.distance_transform_edt``, exact). One transform per grid (over the box that holds it
 and the other side's voxels, see :func:`chamfer_matrix`) then turns every pair into two masked sums: for 100
 samples against a plausible set of 100 shapes at 32^3 that is ~0.3 s instead of ~90 s of KD-tree queries. It
-needs only numpy/scipy (no open3d), so it also runs on the training machine. :func:`chamfer_distance` (a
-cKDTree on arbitrary point clouds) is the reference the grid version is tested against.
+needs only numpy/scipy (no open3d), so it also runs on the training machine. The tests check it against a
+KD-tree over the voxel centres.
 
 Empty clouds: the distance between an empty and a non-empty cloud is undefined; we use ``empty_distance``
 (default: the grid's diagonal, the largest distance two of its points can have) so that a model that outputs
@@ -27,33 +27,14 @@ Metrics for one observation, samples S (n of them), plausible set P (its first m
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 
 class MetricsError(ValueError):
     """Bad input to a metric (shapes, empty sets)."""
-
-
-def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Chamfer distance between two point clouds (same units as the points): mean NN a->b + mean NN b->a.
-
-    Raises:
-        MetricsError: a cloud is empty or not (M, 3).
-    """
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
-        raise MetricsError(f"point clouds must be (M, D) with the same D, got {a.shape} and {b.shape}")
-    if len(a) == 0 or len(b) == 0:
-        raise MetricsError("chamfer distance of an empty point cloud is undefined")
-    d_ab = cKDTree(b).query(a)[0].mean()
-    d_ba = cKDTree(a).query(b)[0].mean()
-    return float(d_ab + d_ba)
 
 
 def _as_grids(grids: np.ndarray, name: str) -> np.ndarray:
@@ -200,36 +181,4 @@ def metrics_from_distances(sample_to_plausible: np.ndarray, sample_to_truth: np.
                               num_samples=int(dsp.shape[0]), num_plausible=int(dsp.shape[1]))
 
 
-def observation_metrics(samples: np.ndarray, ground_truth: np.ndarray, plausible: np.ndarray | None,
-                        voxel_size: float, empty_distance: float | None = None) -> ObservationMetrics:
-    """M_A, M_C, M_P, M_PD of one observation from occupancy grids on the observation's grid.
-
-    Args:
-        samples: (S, N, N, N) bool sampled completions.
-        ground_truth: (N, N, N) bool.
-        plausible: (P, N, N, N) bool plausible shapes; None = only the ground truth. The ground truth is added
-            if no member equals it (the plausible set always contains the truth).
-        voxel_size: metres.
-        empty_distance: see :func:`chamfer_matrix`.
-    """
-    samples = _as_grids(samples, "samples")
-    gt = _as_grids(ground_truth, "ground_truth")
-    if gt.shape[0] != 1:
-        raise MetricsError("ground_truth must be a single (N, N, N) grid")
-    shapes = gt if plausible is None else _as_grids(plausible, "plausible")
-    if not any(np.array_equal(s, gt[0]) for s in shapes):
-        shapes = np.concatenate([gt, shapes])
-    d = chamfer_matrix(samples, np.concatenate([shapes, gt]), voxel_size, empty_distance)
-    return metrics_from_distances(d[:, :-1], d[:, -1])
-
-
 METRIC_NAMES: tuple[str, ...] = ("best_accuracy_mm", "coverage_mm", "plausibility_mm", "plausible_diversity_mm")
-
-
-def aggregate(metrics: Iterable[ObservationMetrics]) -> dict[str, float]:
-    """Mean of each metric over observations (plus ``count``)."""
-    items = list(metrics)
-    out: dict[str, float] = {"count": float(len(items))}
-    for name in METRIC_NAMES:
-        out[name] = float(np.mean([getattr(m, name) for m in items])) if items else float("nan")
-    return out

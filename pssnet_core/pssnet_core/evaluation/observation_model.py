@@ -412,30 +412,6 @@ def compare_depth(prepared: PreparedView, window: tuple[int, int, int, int], exp
                               max_object_error=max_err)
 
 
-def is_plausible(view: DepthView | PreparedView, raycaster: MeshRaycaster, camera_from_object: np.ndarray,
-                 config: ObservationModelConfig | None = None) -> PlausibilityResult:
-    """Alg. 1: does the mesh at ``camera_from_object`` explain the observed view within ``config.delta``?
-
-    Args:
-        view: the observed view (or one already prepared with the same config).
-        raycaster: the candidate mesh.
-        camera_from_object: 4x4 pose of the candidate in the test camera's frame.
-        config: parameters (default: paper's delta 4 cm, no outliers, observed gradient).
-
-    Returns:
-        A :class:`PlausibilityResult`.
-    """
-    if isinstance(view, PreparedView):
-        if config is not None and config != view.config:
-            raise ObservationModelError("the view was prepared with another config than the one given")
-        prepared = view
-    else:
-        prepared = PreparedView(view, config or ObservationModelConfig())
-    pose = _as_pose(camera_from_object, "camera_from_object")
-    window, expected = render_window(prepared, raycaster, pose)
-    return compare_depth(prepared, window, expected)
-
-
 class MultiDeltaView:
     """One view prepared for several deltas: render each candidate once, judge it at every delta.
 
@@ -481,6 +457,7 @@ class MultiDeltaView:
 
         Returns None when the sparse check already rejects it at every delta.
         """
+        camera_from_object = _as_pose(camera_from_object, "camera_from_object")
         if self.sparse is not None and self._sparse_rejects(raycaster, camera_from_object):
             return None
         window, expected = render_window(self.any, raycaster, camera_from_object)
