@@ -1,4 +1,4 @@
-"""Every speed target of the project in one run (`pssnet bench all`): measured value, target, ratio, met.
+"""Every speed target of the project in one run (`python benchmarks/all.py`): measured value, target, ratio, met.
 
     .venv/bin/python benchmarks/all.py [--quick] [--precision auto|fp32|bf16] [--plausible-data DIR] [--json OUT]
 

@@ -1,6 +1,6 @@
 """Dataset generation speed: samples per second on one core, per dataset and grid size.
 
-Run: ``.venv/bin/python benchmarks/data_bench.py [--objects 4] [--grids 32 64]`` (or ``pssnet bench data_bench``).
+Run: ``.venv/bin/python benchmarks/data_bench.py [--objects 4] [--grids 32 64]`` .
 Each sample is made exactly as ``pssnet dataset build`` makes it (shape, render, observe, ground truth, box,
 crop) in this one process with one open3d thread; shard compression and writing are timed separately.
 Also prints the handle-hidden fraction and clipping rate of the samples made (small-sample estimates).

@@ -1,6 +1,6 @@
 """Time observe(): a 640x480 depth image of a box on a table -> observation grid at 32^3 and 64^3.
 
-Run: `pssnet bench geometry_bench` (or `.venv/bin/python benchmarks/geometry_bench.py`).
+Run: `.venv/bin/python benchmarks/geometry_bench.py`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Time procedural shape generation (ms per shape, per family) and the mesh-folder round trip.
 
-Run: `pssnet bench shapes_bench` (or `.venv/bin/python benchmarks/shapes_bench.py --count 50`).
+Run: `.venv/bin/python benchmarks/shapes_bench.py --count 50`.
 """
 
 from __future__ import annotations

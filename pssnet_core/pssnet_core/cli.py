@@ -1,4 +1,4 @@
-"""The `pssnet` command line: datasets, training, plausible sets, evaluation, benchmarks.
+"""The `pssnet` command line: datasets, training, plausible sets, evaluation, grasp trials.
 
 Each area registers its own subcommands (a ``register(subparsers)`` function in its ``cli`` module), so
 this file only assembles them. Other installed packages add theirs through the ``pssnet.commands`` entry-point
@@ -18,7 +18,6 @@ COMMAND_MODULES: tuple[str, ...] = (
     "pssnet_core.training.cli",
     "pssnet_core.evaluation.cli",
     "pssnet_core.trials.cli",
-    "pssnet_core.bench",
 )
 #: Entry-point group of the modules other packages add subcommands from (each with a ``register`` function).
 PLUGIN_GROUP = "pssnet.commands"
