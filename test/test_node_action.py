@@ -136,14 +136,47 @@ def test_client_cancels_a_heavy_goal_at_its_next_step(node, action, scene):
     assert status == GoalStatus.STATUS_SUCCEEDED, result.message
 
 
+def test_goals_run_one_at_a_time_in_order_and_a_waiting_goal_can_be_cancelled(node, action, scene):
+    """Three goals sent at once: the second starts only after the first has ended (its first feedback comes
+    after the first's last), the third is cancelled while it waits and ends cancelled without work."""
+    arrivals: list[tuple[int, str]] = []  # (goal, stage) in the order the client receives them
+    lock = threading.Lock()
+
+    def log_for(goal: int):
+        def log(feedback: Feedback) -> None:
+            with lock:
+                arrivals.append((goal, feedback.stage))
+        return log
+
+    before = node.ros.stats()
+    handles = [node.ros.send_goal(action, goal, log_for(k))
+               for k, goal in enumerate([heavy_goal(scene), light_goal(scene), light_goal(scene)])]
+    assert all(h.accepted for h in handles)
+    assert node.ros.cancel_goal(handles[2]).goals_canceling  # still waiting behind the first two
+    results = [node.ros.goal_result(h, 180) for h in handles]
+    assert [status for status, _ in results] == [GoalStatus.STATUS_SUCCEEDED, GoalStatus.STATUS_SUCCEEDED,
+                                                  GoalStatus.STATUS_CANCELED], [r.message for _, r in results]
+    assert results[2][1].status == Result.STATUS_CANCELLED and results[2][1].message == CLIENT_CANCELLED_MESSAGE
+    with lock:
+        first_of_second = arrivals.index((1, Feedback.STAGE_OBSERVATION))
+        assert arrivals.index((0, Feedback.STAGE_GRASPS)) < first_of_second, arrivals
+        assert [stage for goal, stage in arrivals if goal == 2] == [], arrivals  # no step of the cancelled goal ran
+    after = node.ros.stats()
+    assert after["action_goals"] - before["action_goals"] == 3
+    assert after["action_failures"] - before["action_failures"] == 1
+
+
 def test_deactivation_stops_a_goal_and_inactive_node_aborts_goals(node, action, scene):
     log = FeedbackLog(signal_stage=Feedback.STAGE_NETWORK)
     handle = node.ros.send_goal(action, heavy_goal(scene), log)
+    waiting = node.ros.send_goal(action, light_goal(scene))  # queued behind the heavy one
     assert log.reached.wait(60), "the goal never reached the network"
     assert node.ros.change_state("deactivate")  # returns once the goal in flight has stopped
     status, result = node.ros.goal_result(handle, 5)
     assert status == GoalStatus.STATUS_ABORTED
     assert result.status == Result.STATUS_CANCELLED and result.message == CANCELLED_MESSAGE
+    status, result = node.ros.goal_result(waiting, 5)  # answered by the transition, not left waiting
+    assert status == GoalStatus.STATUS_ABORTED and result.status == Result.STATUS_NOT_ACTIVE, result.message
     status, result = run_goal(node, action, light_goal(scene))
     assert status == GoalStatus.STATUS_ABORTED and result.status == Result.STATUS_NOT_ACTIVE, result.message
     assert "inactive" in result.message

@@ -30,6 +30,7 @@ All outputs carry the input's header. The node only converts messages; the work 
 
 from __future__ import annotations
 
+import collections
 import copy
 import faulthandler
 import json
@@ -159,9 +160,11 @@ class CompletionNode(LifecycleNode):
         self._active = False
         # Set when the node leaves the active state: calls and topic sets in flight stop at their next step.
         self._stopping = threading.Event()
-        # Action goals executing now (they run as executor tasks, outside any callback group): a transition
-        # waits for them as for the service's call in flight.
+        # Action goals run as executor tasks, outside any callback group, so the node runs them one at a time
+        # itself: the next accepted goal waits here (holding no executor thread) until the current one ends.
+        # A transition stops the executing goal and waits for it as for the service's call in flight.
         self._goals_running = 0
+        self._goals_waiting: collections.deque[ServerGoalHandle] = collections.deque()
         self._goals_done = threading.Condition(self._lock)
         self._subscriptions: list[Subscription] = []  # the inputs, while active
         self._continuous_timer: Timer | None = None  # while active with continuous on
@@ -189,7 +192,8 @@ class CompletionNode(LifecycleNode):
         # The same call as an action, for progress and cancelling; like the service it lives as long as the node.
         self._action_server = ActionServer(
             self, SampleCompletionsAction, "~/sample_completions", execute_callback=self._execute_goal,
-            cancel_callback=lambda goal_handle: CancelResponse.ACCEPT, callback_group=MutuallyExclusiveCallbackGroup())
+            handle_accepted_callback=self._on_goal_accepted, cancel_callback=lambda goal_handle: CancelResponse.ACCEPT,
+            callback_group=MutuallyExclusiveCallbackGroup())
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # Entities with QoS event handlers (publishers, subscriptions with rclpy's default handlers) must not be
         # destroyed while the executor runs: rclpy 7.1's MultiThreadedExecutor adds event handlers to its wait set
@@ -300,6 +304,11 @@ class CompletionNode(LifecycleNode):
             self.destroy_subscription(subscription)
         self._subscriptions = []
         self._when_idle(self._sample_service, lambda service: None)
+        with self._lock:  # waiting goals are answered now (not active), not after the executing one
+            waiting, self._goals_waiting = list(self._goals_waiting), collections.deque()
+            self._goals_running += len(waiting)
+        for goal_handle in waiting:
+            goal_handle.execute()
         self._wait_for_goals()
         self._update_continuous_timer()
 
@@ -530,11 +539,18 @@ class CompletionNode(LifecycleNode):
         finally:
             self._worked_since_trim = True
 
+    def _on_goal_accepted(self, goal_handle: ServerGoalHandle) -> None:
+        """Executes the goal now when none executes, else queues it behind the executing one."""
+        with self._lock:
+            if self._goals_running or self._goals_waiting:
+                self._goals_waiting.append(goal_handle)
+                return
+            self._goals_running += 1  # counted from here, so that the next goal accepted queues behind it
+        goal_handle.execute()
+
     def _execute_goal(self, goal_handle: ServerGoalHandle) -> SampleCompletionsAction.Result:
         """The action's goal: the service's answer as its result, feedback before each step, and the goal
         stopped at its next step when the client cancels it (or the node leaves the active state)."""
-        with self._lock:
-            self._goals_running += 1
         try:
             t0 = time.perf_counter()
 
@@ -545,8 +561,12 @@ class CompletionNode(LifecycleNode):
                     stage=stage, elapsed_s=time.perf_counter() - t0))
                 return False
 
-            progress(SampleCompletionsAction.Feedback.STAGE_OBSERVATION)
-            result = self._answer(goal_handle.request, SampleCompletionsAction.Result(), "action", progress)
+            if progress(SampleCompletionsAction.Feedback.STAGE_OBSERVATION):  # cancelled while it waited
+                self._count("action_goals")
+                result = self._refuse(SampleCompletionsAction.Result(), "action_failures", Status.STATUS_CANCELLED,
+                                      CLIENT_CANCELLED_MESSAGE)
+            else:
+                result = self._answer(goal_handle.request, SampleCompletionsAction.Result(), "action", progress)
             if result.status == Status.STATUS_OK:
                 goal_handle.succeed()
             elif result.status == Status.STATUS_CANCELLED and goal_handle.is_cancel_requested:
@@ -559,7 +579,12 @@ class CompletionNode(LifecycleNode):
             self._worked_since_trim = True
             with self._lock:
                 self._goals_running -= 1
+                next_goal = self._goals_waiting.popleft() if self._goals_waiting else None
+                if next_goal is not None:
+                    self._goals_running += 1
                 self._goals_done.notify_all()
+            if next_goal is not None:
+                next_goal.execute()
 
     def _answer(self, request: SampleCompletions.Request | SampleCompletionsAction.Goal, response: Answer,
                 kind: str, should_stop: Callable[[str], bool] | None = None) -> Answer:
