@@ -172,10 +172,10 @@ def test_deactivation_stops_a_goal_and_inactive_node_aborts_goals(node, action, 
     waiting = node.ros.send_goal(action, light_goal(scene))  # queued behind the heavy one
     assert log.reached.wait(60), "the goal never reached the network"
     assert node.ros.change_state("deactivate")  # returns once the goal in flight has stopped
-    status, result = node.ros.goal_result(handle, 5)
+    status, result = node.ros.goal_result(handle, 30)
     assert status == GoalStatus.STATUS_ABORTED
     assert result.status == Result.STATUS_CANCELLED and result.message == CANCELLED_MESSAGE
-    status, result = node.ros.goal_result(waiting, 5)  # answered by the transition, not left waiting
+    status, result = node.ros.goal_result(waiting, 30)  # answered by the transition, not left waiting
     assert status == GoalStatus.STATUS_ABORTED and result.status == Result.STATUS_NOT_ACTIVE, result.message
     status, result = run_goal(node, action, light_goal(scene))
     assert status == GoalStatus.STATUS_ABORTED and result.status == Result.STATUS_NOT_ACTIVE, result.message

@@ -163,8 +163,9 @@ class CompletionNode(LifecycleNode):
         # Action goals run as executor tasks, outside any callback group, so the node runs them one at a time
         # itself: the next accepted goal waits here (holding no executor thread) until the current one ends.
         # A transition stops the executing goal and waits for it as for the service's call in flight.
-        self._goals_running = 0
+        self._goal_turn_taken = False  # a goal executes, or its successor is about to
         self._goals_waiting: collections.deque[ServerGoalHandle] = collections.deque()
+        self._goals_running = 0  # goals whose execution has started and not ended
         self._goals_done = threading.Condition(self._lock)
         self._subscriptions: list[Subscription] = []  # the inputs, while active
         self._continuous_timer: Timer | None = None  # while active with continuous on
@@ -304,16 +305,15 @@ class CompletionNode(LifecycleNode):
             self.destroy_subscription(subscription)
         self._subscriptions = []
         self._when_idle(self._sample_service, lambda service: None)
-        with self._lock:  # waiting goals are answered now (not active), not after the executing one
+        with self._lock:  # waiting goals are answered now, without work, not after the executing one
             waiting, self._goals_waiting = list(self._goals_waiting), collections.deque()
-            self._goals_running += len(waiting)
         for goal_handle in waiting:
-            goal_handle.execute()
+            goal_handle.execute(self._end_waiting_goal)
         self._wait_for_goals()
         self._update_continuous_timer()
 
     def _wait_for_goals(self) -> None:
-        """Waits until no action goal executes (each stops at its next step, as ``_stopping`` is set)."""
+        """Waits until no started action goal executes (each stops at its next step, as ``_stopping`` is set)."""
         with self._goals_done:
             if not self._goals_done.wait_for(lambda: self._goals_running == 0, TRANSITION_WAIT_LIMIT_S):
                 self.get_logger().error(f"an action goal did not stop within {TRANSITION_WAIT_LIMIT_S:.0f} s; "
@@ -493,6 +493,7 @@ class CompletionNode(LifecycleNode):
         pipeline = self.pipeline
         if pipeline is None:
             raise InputError("the node is not configured (no model loaded)", Status.STATUS_NOT_ACTIVE)
+
         def stop(step: str) -> bool:
             return self._stopping.is_set() or bool(should_stop and should_stop(step))
 
@@ -542,15 +543,18 @@ class CompletionNode(LifecycleNode):
     def _on_goal_accepted(self, goal_handle: ServerGoalHandle) -> None:
         """Executes the goal now when none executes, else queues it behind the executing one."""
         with self._lock:
-            if self._goals_running or self._goals_waiting:
+            if self._goal_turn_taken:
                 self._goals_waiting.append(goal_handle)
                 return
-            self._goals_running += 1  # counted from here, so that the next goal accepted queues behind it
+            self._goal_turn_taken = True
         goal_handle.execute()
 
     def _execute_goal(self, goal_handle: ServerGoalHandle) -> SampleCompletionsAction.Result:
         """The action's goal: the service's answer as its result, feedback before each step, and the goal
-        stopped at its next step when the client cancels it (or the node leaves the active state)."""
+        stopped at its next step when the client cancels it (or the node leaves the active state); then the
+        next waiting goal's turn."""
+        with self._lock:
+            self._goals_running += 1
         try:
             t0 = time.perf_counter()
 
@@ -562,29 +566,42 @@ class CompletionNode(LifecycleNode):
                 return False
 
             if progress(SampleCompletionsAction.Feedback.STAGE_OBSERVATION):  # cancelled while it waited
-                self._count("action_goals")
-                result = self._refuse(SampleCompletionsAction.Result(), "action_failures", Status.STATUS_CANCELLED,
-                                      CLIENT_CANCELLED_MESSAGE)
-            else:
-                result = self._answer(goal_handle.request, SampleCompletionsAction.Result(), "action", progress)
-            if result.status == Status.STATUS_OK:
-                goal_handle.succeed()
-            elif result.status == Status.STATUS_CANCELLED and goal_handle.is_cancel_requested:
-                result.message = CLIENT_CANCELLED_MESSAGE
-                goal_handle.canceled()
-            else:
-                goal_handle.abort()
-            return result
+                return self._end_waiting_goal(goal_handle)
+            return self._end_goal(goal_handle, self._answer(goal_handle.request, SampleCompletionsAction.Result(),
+                                                            "action", progress))
         finally:
             self._worked_since_trim = True
             with self._lock:
                 self._goals_running -= 1
                 next_goal = self._goals_waiting.popleft() if self._goals_waiting else None
-                if next_goal is not None:
-                    self._goals_running += 1
+                self._goal_turn_taken = next_goal is not None
                 self._goals_done.notify_all()
             if next_goal is not None:
                 next_goal.execute()
+
+    def _end_waiting_goal(self, goal_handle: ServerGoalHandle) -> SampleCompletionsAction.Result:
+        """Ends a goal that never got its turn, without work: cancelled by its client, or the node stopped
+        serving before its turn (a lifecycle transition)."""
+        self._count("action_goals")
+        cancelled = goal_handle.is_cancel_requested
+        result = self._refuse(SampleCompletionsAction.Result(), "action_failures",
+                              Status.STATUS_CANCELLED if cancelled else Status.STATUS_NOT_ACTIVE,
+                              CLIENT_CANCELLED_MESSAGE if cancelled else
+                              "the node left the active state before this goal's turn: send it again once it is active")
+        return self._end_goal(goal_handle, result)
+
+    @staticmethod
+    def _end_goal(goal_handle: ServerGoalHandle,
+                  result: SampleCompletionsAction.Result) -> SampleCompletionsAction.Result:
+        """Sets the goal's final state from its result's status: succeeded, canceled (its client asked), aborted."""
+        if result.status == Status.STATUS_OK:
+            goal_handle.succeed()
+        elif result.status == Status.STATUS_CANCELLED and goal_handle.is_cancel_requested:
+            result.message = CLIENT_CANCELLED_MESSAGE
+            goal_handle.canceled()
+        else:
+            goal_handle.abort()
+        return result
 
     def _answer(self, request: SampleCompletions.Request | SampleCompletionsAction.Goal, response: Answer,
                 kind: str, should_stop: Callable[[str], bool] | None = None) -> Answer:
