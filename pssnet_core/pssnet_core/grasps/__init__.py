@@ -38,7 +38,7 @@ completion's weight (voxel volume x ``object_density``, at its centroid) that th
 each pad, pressed with ``grip_force``, holds the weight's part across the closing axis and its moment about
 that axis by friction (coefficient ``friction``) over its contact patch, up to the soft-finger limit
 ``(f / mu F)^2 + (tau / (mu F r))^2 <= 1`` (r = the patch's mean radius), and the moment across the axis by
-the spread of its pressure over the patch; a load along the closing axis is not held by force-controlled
+the spread of its pressure over the patch, both at once while their shares of those limits sum to <= 1; a load along the closing axis is not held by force-controlled
 fingers (``holds_axial_load``). A pinch of a thin handle touches a narrow strip while the mug's weight hangs
 6-7 cm away about the closing axis: in the grasp trials such pinches slipped by turning about the closing
 axis, and those with the larger twist per patch radius slipped more (records of ``grasp_trials/planner2``).

@@ -177,8 +177,9 @@ def _weight_resistance(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, 
       (the soft-finger limit surface);
     - pressure: the moment across the closing axis, W d', shifts each pad's centre of pressure towards the
       edge of its patch; the pads hold it while ``W d' <= F (e_1 + e_2)``, e = the patch's reach from its centre
-      in the direction the pressure must shift.
+      in the direction the pressure must shift;
 
+    both together (the same pressure serves both) while the two loads' shares of their limits sum to <= 1.
     The weight's part along the closing axis, W y_z, is borne by the normal forces only if the hand holds an
     axial load (``GripperConfig.holds_axial_load``); otherwise any such part is not held (share 0).
     """
@@ -216,8 +217,9 @@ def _weight_resistance(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, 
     pressure_need = bend / np.maximum(reach, 1e-9)
     weight = voxels * voxel_size**3 * config.object_density * 9.81  # (S,) newtons
     force = config.gripper.grip_force
-    holdable = np.minimum(config.friction * force / np.maximum(friction_need, 1e-12),
-                          force / np.maximum(pressure_need, 1e-12))  # newtons of weight
+    # The same pressure serves both: pressure shifted to a patch's edge shortens the lever of its torsional
+    # friction. The linear interaction of the two loads is the conservative bound of their convex limit.
+    holdable = 1.0 / np.maximum(friction_need / (config.friction * force) + pressure_need / force, 1e-12)
     if not config.gripper.holds_axial_load:  # force-controlled fingers: an axial load slides the pinch
         holdable = np.where(np.abs(closing[..., 2]) > 1e-6, 0.0, holdable)
     touched = (n[0] > 0) & (n[1] > 0) & (voxels[None, :] > 0)
