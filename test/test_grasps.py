@@ -66,6 +66,8 @@ def top_grasp(x: float, y: float, tip_z: float, width: float) -> GraspCandidates
     ({"finger_width": float("nan")}, "finite"),
     ({"palm_depth": "2cm"}, "finite number"),
     ({"min_object_width": 0.09}, "min_object_width"),
+    ({"grip_force": 0.0}, "grip_force"),
+    ({"holds_axial_load": 1}, "holds_axial_load"),
 ])
 def test_gripper_config_rejects_absurd_values(kwargs, message):
     with pytest.raises(GraspError, match=message):
@@ -77,6 +79,8 @@ def test_gripper_config_rejects_absurd_values(kwargs, message):
     ({"top_yaws": 0, "side_yaws": 0}, "no approach direction"),
     ({"clearance": 0.05}, "clearance"),
     ({"seed": -1}, "seed"),
+    ({"friction": 0.0}, "friction"),
+    ({"object_density": -1.0}, "object_density"),
     ({"gripper": {"max_opening": 0.08}}, "GripperConfig"),
 ])
 def test_grasp_config_rejects_bad_values(kwargs, message):
@@ -400,3 +404,69 @@ def test_a_fingertip_pinch_of_a_round_bodys_near_side_is_squeezed_out_a_flat_one
     assert round_pinch.contains[0, 0] and round_pinch.squeezed_out[0, 0] and not round_pinch.holds[0, 0]
     flat_pinch = checks(slab, 8.0)
     assert flat_pinch.contains[0, 0] and not flat_pinch.squeezed_out[0, 0] and flat_pinch.holds[0, 0]
+
+
+def _mug_like(body: bool = True) -> np.ndarray:
+    """A vertical rod 2 x 2 voxels thick, 14 tall (a handle), and, 10 voxels away along -x, a heavy block."""
+    occ = np.zeros((1, N, N, N), dtype=bool)
+    occ[0, 22:24, 15:17, 4:18] = True
+    if body:
+        occ[0, 4:16, 10:22, 2:20] = True
+    return occ
+
+
+def _rod_pinch(closing: np.ndarray) -> GraspCandidates:
+    """A side grasp from +x pinching the rod of :func:`_mug_like` (its closing region centred on the rod)."""
+    approach = np.array([-1.0, 0.0, 0.0])
+    rot = np.stack([np.cross(closing, approach), closing, approach], axis=1)
+    origin = np.array([23.0, 16.0, 11.0]) + 0.5 * FL * approach
+    return GraspCandidates(origin[None], rot[None], np.array([2.0 + 2 * CLEAR]), np.ones(1, np.int8))
+
+
+def test_a_pinch_twisted_by_the_weight_on_a_narrow_patch_resists_only_part_of_it():
+    horizontal = _rod_pinch(np.array([0.0, 1.0, 0.0]))  # the weight's moment is about the closing axis
+    twisted = check_grasps(horizontal, _mug_like(), identity_pose(), 2.0, CONFIG)
+    assert twisted.holds[0, 0] and twisted.lever[0, 0] == pytest.approx(0.0, abs=0.5)
+    share = twisted.resistance[0, 0]
+    assert 0.0 < share < 0.5  # the strip of contact on the rod cannot twist-hold the block 10 voxels away
+    # Alone, the rod hangs straight below the pads: nothing twists and its small weight is held in full.
+    assert check_grasps(horizontal, _mug_like(body=False), identity_pose(), 2.0, CONFIG).resistance[0, 0] == 1.0
+    # The share scales with the friction and the grip force over the weight (density), and saturates at 1.
+    def share_with(**changes) -> float:
+        gripper = dataclasses.replace(CONFIG.gripper, **changes.pop("gripper", {}))
+        config = dataclasses.replace(CONFIG, gripper=gripper, **changes)
+        return float(check_grasps(horizontal, _mug_like(), identity_pose(), 2.0, config).resistance[0, 0])
+
+    assert share_with(friction=1.0) == pytest.approx(min(1.0, 2 * share), rel=1e-6)
+    assert share_with(object_density=2 * CONFIG.object_density) == pytest.approx(share / 2, rel=1e-6)
+    assert share_with(gripper={"grip_force": 50 * CONFIG.gripper.grip_force}) == 1.0
+
+
+def test_a_flat_wide_contact_holds_the_whole_weight():
+    occ = bar(1)  # 5 voxels thick: a top grasp over its middle touches with the whole pads
+    checks = check_grasps(top_grasp(12.5, 16.0, 13.0, 5.0 + 2 * CLEAR), occ, identity_pose(), 2.0, CONFIG)
+    assert checks.holds[0, 0] and checks.resistance[0, 0] == 1.0
+
+
+def test_a_load_along_the_closing_axis_is_not_held_by_force_controlled_fingers():
+    vertical = _rod_pinch(np.array([0.0, 0.0, 1.0]))  # from above and below: the weight pushes along the axis
+    rod = _mug_like(body=False)
+    rod[0, 22:24, 15:17, 4:18] = False
+    rod[0, 22:24, 12:20, 10:12] = True  # a horizontal bar instead, pinched from above and below
+    assert check_grasps(vertical, rod, identity_pose(), 2.0, CONFIG).resistance[0, 0] == 0.0
+    stiff = dataclasses.replace(CONFIG, gripper=dataclasses.replace(CONFIG.gripper, holds_axial_load=True))
+    assert check_grasps(vertical, rod, identity_pose(), 2.0, stiff).resistance[0, 0] == 1.0
+
+
+def test_the_share_of_the_weight_held_is_half_the_tie_break():
+    from pssnet_core.grasps.scoring import holds_and_secondary
+
+    candidates = _rod_pinch(np.array([0.0, 1.0, 0.0]))
+    checks = check_grasps(candidates, _mug_like(), identity_pose(), 2.0, CONFIG)
+    full = dataclasses.replace(checks, resistance=np.ones_like(checks.resistance))
+    none = dataclasses.replace(checks, resistance=np.zeros_like(checks.resistance))
+    _, with_full = holds_and_secondary(full, candidates, CONFIG, VOXEL)
+    _, with_none = holds_and_secondary(none, candidates, CONFIG, VOXEL)
+    _, actual = holds_and_secondary(checks, candidates, CONFIG, VOXEL)
+    assert with_full[0] - with_none[0] == pytest.approx(0.5)
+    assert actual[0] == pytest.approx(with_none[0] + 0.5 * checks.resistance[0, 0])

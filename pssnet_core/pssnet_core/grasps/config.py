@@ -23,6 +23,13 @@ class GripperConfig:
         finger_thickness: finger extent along the closing axis (metres).
         palm_depth: thickness of the palm (hand body) behind the fingers along the approach (metres).
         min_object_width: less object than this between the fingers along the closing axis is not held (metres).
+        grip_force: force each finger presses on the object when closed (newtons); a Franka Hand holds up to 70 N
+            continuously, a Robotiq 2F-85 20-235 N.
+        holds_axial_load: whether the hand holds a load along the closing axis. False: each finger presses with
+            ``grip_force`` on its own (force control), so the pads push on the object with equal and opposite
+            forces and a load along the axis carries the object and both fingers along it until a finger
+            stops (in the grasp trials a mug pinched from above and below sinks with the fingers and falls).
+            True for fingers coupled by a stiff, non-backdrivable drive.
     """
 
     max_opening: float = 0.08
@@ -31,11 +38,18 @@ class GripperConfig:
     finger_thickness: float = 0.01
     palm_depth: float = 0.02
     min_object_width: float = 0.005
+    grip_force: float = 20.0
+    holds_axial_load: bool = False
 
     def __post_init__(self) -> None:
         values = {"max_opening": self.max_opening, "finger_length": self.finger_length,
                   "finger_width": self.finger_width, "finger_thickness": self.finger_thickness,
                   "palm_depth": self.palm_depth, "min_object_width": self.min_object_width}
+        if isinstance(self.grip_force, bool) or not isinstance(self.grip_force, int | float) \
+                or not 0.1 <= self.grip_force <= 1000.0:
+            raise GraspError(f"gripper grip_force must be in [0.1, 1000] N, got {self.grip_force!r}")
+        if not isinstance(self.holds_axial_load, bool):
+            raise GraspError(f"gripper holds_axial_load must be a bool, got {self.holds_axial_load!r}")
         for name, value in values.items():
             if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
                 raise GraspError(f"gripper {name} must be a finite number of metres, got {value!r}")
@@ -72,6 +86,12 @@ class GraspConfig:
         clearance: free space left between each finger pad and the widest completion (metres).
         plane_clearance: every gripper part stays at least this far above the support plane (metres).
         oversample: raw (anchor, orientation) pairs generated per kept candidate, before de-duplication.
+        friction: Coulomb friction coefficient between the finger pads and the object, for the weight check (0.5:
+            the usual conservative value for rubber pads on ceramic, plastic or cardboard).
+        object_density: density assumed for every completion's voxels when the weight check turns volume into
+            weight (kg/m^3). 1000 (water, a filled container) lies between packed cardboard boxes (~400) and
+            solid ceramic (~2300); a voxel solid overstates a thin wall's volume, so a thin-walled ceramic mug
+            comes out heavier than it is.
         seed: seed of the anchor/orientation sampling and of the final subset.
     """
 
@@ -86,6 +106,8 @@ class GraspConfig:
     clearance: float = 0.005
     plane_clearance: float = 0.0
     oversample: float = 3.0
+    friction: float = 0.5
+    object_density: float = 1000.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -120,6 +142,10 @@ class GraspConfig:
             raise GraspError(f"plane_clearance must be in [0, 0.1] m, got {self.plane_clearance}")
         if not 1.0 <= self.oversample <= 20.0:
             raise GraspError(f"oversample must be in [1, 20], got {self.oversample}")
+        if isinstance(self.friction, bool) or not 0.05 <= float(self.friction) <= 2.0:
+            raise GraspError(f"friction must be in [0.05, 2], got {self.friction!r}")
+        if isinstance(self.object_density, bool) or not 10.0 <= float(self.object_density) <= 25000.0:
+            raise GraspError(f"object_density must be in [10, 25000] kg/m^3, got {self.object_density!r}")
         if self.seed < 0:
             raise GraspError(f"seed must be >= 0, got {self.seed}")
 

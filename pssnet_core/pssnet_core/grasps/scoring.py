@@ -43,7 +43,13 @@ class GraspChecks:
         lever: (K, S) the arm (voxels) of completion s's weight about the grasp, the part of its moment that lies
             across the closing axis: the pads can resist that part only by pressing unevenly, which a small
             contact (a pinch of a handle from above and below) cannot. A moment about the closing axis itself is
-            taken by friction over both pads.
+            taken by friction over both pads (see ``resistance``).
+        resistance: (K, S) the share of completion s's weight (at ``object_density``, acting at its centroid) that
+            the two pads can hold by friction, capped at 1 (:func:`_weight_resistance`): a pad pressed with
+            ``grip_force`` resists a tangential force and a twist about its normal (the closing axis) together up
+            to the soft-finger limit ``(f / mu F)^2 + (tau / (mu F r))^2 <= 1``, r = the mean distance of its
+            contact patch from the patch's centre. A pinch of a thin handle touches a narrow strip (small r) while
+            the mug's weight hangs 6-7 cm away about the closing axis: the twist, not the weight, makes it slip.
     """
 
     fits: np.ndarray
@@ -54,6 +60,7 @@ class GraspChecks:
     coverage: np.ndarray
     squeezed_out: np.ndarray
     lever: np.ndarray
+    resistance: np.ndarray
 
     @property
     def holds(self) -> np.ndarray:
@@ -84,7 +91,7 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     if k == 0:
         none = np.zeros((0, s), dtype=bool)
         return GraspChecks(np.zeros(0, bool), np.zeros(0, bool), none, none, none, np.zeros((0, s)), none,
-                           np.zeros((0, s)))
+                           np.zeros((0, s)), np.zeros((0, s)))
     dims = VoxelDims.of(config, pose.voxel_size)
     fl, fw, ft, wmax = dims.finger_length, dims.finger_width, dims.finger_thickness, dims.max_opening
     origins = np.asarray(candidates.origins, dtype=np.float64)
@@ -119,10 +126,12 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     tol = np.ceil(1.0 / (widths / (n_y - 1)) - 1e-9).astype(np.int64)[:, None]  # slices in one voxel
     slice_index = np.arange(n_y)[:, None, None]
     coverage = np.zeros((k, s))
+    patches = []  # per pad: (pad cells, K, S) the cells touching
     for words, touch in ((closing, lo), (closing[:, ::-1], n_y - 1 - hi)):
         reach = bits.pack(np.clip(touch + tol, 0, n_y - 1)[None] >= slice_index)  # (W, n_y, K)
         touching = np.bitwise_or.reduce(words & reach[:, :, None, :], axis=1)  # (W, pad cells, K)
         coverage += bits.count(touching) / (nx * nz)
+        patches.append(bits.unpack(touching) & has[None])
     coverage = np.where(has, coverage / 2.0, 0.0)
 
     # Fingers and palm.
@@ -137,7 +146,8 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
                                   (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0)),
                                   keep=()))
     return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage, squeezed_out,
-                       _levers(bits, origins, rot, fl))
+                       _levers(bits, origins, rot, fl),
+                       _weight_resistance(bits, origins, rot, patches, (fw, fl), (nx, nz), pose.voxel_size, config))
 
 
 def _levers(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, finger_length: float) -> np.ndarray:
@@ -149,6 +159,71 @@ def _levers(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, finger_leng
     closing = rot[:, None, :, 1]
     across = moment - np.sum(moment * closing, axis=2, keepdims=True) * closing
     return np.where(counts[None, :] > 0, np.linalg.norm(across, axis=2), 0.0)
+
+
+def _weight_resistance(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, patches: list[np.ndarray],
+                       pad: tuple[float, float], cells: tuple[int, int], voxel_size: float,
+                       config: GraspConfig) -> np.ndarray:
+    """(K, S) :attr:`GraspChecks.resistance` from each pad's touching cells ``patches`` ((nx * nz, K, S) each).
+
+    The weight W (voxel count x voxel volume x density) acts at the completion's centroid; its moment is taken
+    about the closing axis through the middle of the two contact patches. Each pad presses with F =
+    ``grip_force`` and holds by its own contact patch (a pair of pads that touch a curved part at a point may
+    roll on it, so no couple between the two pads is counted):
+
+    - friction (coefficient mu): the weight's part across the closing axis, f = W sqrt(1 - y_z^2), and its
+      moment about the closing axis, W d, shared in proportion to the patch radii r (the mean distance of a
+      patch's cells from its centre), load both pads alike: ``W sqrt((f/2W)^2 + (d / (r_1 + r_2))^2) <= mu F``
+      (the soft-finger limit surface);
+    - pressure: the moment across the closing axis, W d', shifts each pad's centre of pressure towards the
+      edge of its patch; the pads hold it while ``W d' <= F (e_1 + e_2)``, e = the patch's reach from its centre
+      in the direction the pressure must shift;
+
+    both together (the same pressure serves both) while the two loads' shares of their limits sum to <= 1.
+    The weight's part along the closing axis, W y_z, is borne by the normal forces only if the hand holds an
+    axial load (``GripperConfig.holds_axial_load``); otherwise any such part is not held (share 0).
+    """
+    (fw, fl), (nx, nz) = pad, cells
+    # Pad cell (ix, iz), x-major, sits at gripper x = -fw/2 + ix fw/(nx-1), z = -fl + iz fl/(nz-1) (voxels).
+    xs = np.linspace(-fw / 2, fw / 2, nx) if nx > 1 else np.zeros(1)
+    zs = np.linspace(-fl, 0.0, nz) if nz > 1 else np.full(1, -fl / 2)
+    cell_x, cell_z = (a.ravel()[:, None, None] for a in np.meshgrid(xs, zs, indexing="ij"))
+    n = [touching.sum(axis=0) for touching in patches]
+    centres = [((t * cell_x).sum(axis=0) / np.maximum(c, 1), (t * cell_z).sum(axis=0) / np.maximum(c, 1))
+               for t, c in zip(patches, n)]
+    cx = 0.5 * (centres[0][0] + centres[1][0])
+    cz = 0.5 * (centres[0][1] + centres[1][1])
+    axis_point = origins[:, None, :] + cx[..., None] * rot[:, None, :, 0] + cz[..., None] * rot[:, None, :, 2]
+    centroids, voxels = bits.mass_centres
+    arm = centroids[None, :, :] - axis_point  # (K, S, 3) voxels
+    # Moment of a unit weight (0, 0, -1) at the centroid: arm x (0, 0, -1) = (-arm_y, arm_x, 0).
+    moment = np.stack([-arm[..., 1], arm[..., 0], np.zeros(arm.shape[:2])], axis=2)
+    closing = rot[:, None, :, 1]
+    twist = np.sum(moment * closing, axis=2)
+    across = moment - twist[..., None] * closing
+    bend = np.linalg.norm(across, axis=2)
+    # The pressure shifts along closing x moment-direction, in the pad plane (gripper x, z components).
+    shift = np.cross(closing, across / np.maximum(bend, 1e-12)[..., None])
+    shift_x = np.sum(shift * rot[:, None, :, 0], axis=2)
+    shift_z = np.sum(shift * rot[:, None, :, 2], axis=2)
+    radius, reach = np.zeros(twist.shape), np.zeros(twist.shape)
+    for touching, count, (px, pz) in zip(patches, n, centres):
+        dx, dz = cell_x - px, cell_z - pz
+        radius += (touching * np.hypot(dx, dz)).sum(axis=0) / np.maximum(count, 1)
+        reach += np.where(touching, np.abs(dx * shift_x + dz * shift_z), 0.0).max(axis=0)
+    tangential = np.sqrt(np.clip(1.0 - closing[..., 2] ** 2, 0.0, 1.0))
+    # Per newton of weight: the friction each pad needs, and the pressing force the pads need.
+    friction_need = np.hypot(0.5 * tangential, np.abs(twist) / np.maximum(radius, 1e-9))
+    pressure_need = bend / np.maximum(reach, 1e-9)
+    weight = voxels * voxel_size**3 * config.object_density * 9.81  # (S,) newtons
+    force = config.gripper.grip_force
+    # The same pressure serves both: pressure shifted to a patch's edge shortens the lever of its torsional
+    # friction. The linear interaction of the two loads is the conservative bound of their convex limit.
+    holdable = 1.0 / np.maximum(friction_need / (config.friction * force) + pressure_need / force, 1e-12)
+    if not config.gripper.holds_axial_load:  # force-controlled fingers: an axial load slides the pinch
+        holdable = np.where(np.abs(closing[..., 2]) > 1e-6, 0.0, holdable)
+    touched = (n[0] > 0) & (n[1] > 0) & (voxels[None, :] > 0)
+    return np.where(touched, np.minimum(1.0, holdable / np.maximum(weight[None, :], 1e-12)), 0.0)
 
 
 def score_grasps(candidates: GraspCandidates, occupancy: np.ndarray, pose: GridPose, support_z: float,
@@ -182,4 +257,7 @@ def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config
     wmax = config.gripper.max_opening / voxel_size
     margin = np.clip((wmax - np.asarray(candidates.widths, dtype=np.float64)) / wmax, 0.0, 1.0)
     balance = mean_over_held(np.clip(1.0 - checks.lever / wmax, 0.0, 1.0))
-    return holds, 0.6 * mean_over_held(checks.coverage) + 0.2 * margin + 0.2 * balance
+    # Half the term: the share of the weight the pads hold (1 for every grasp that holds all of it, so those keep
+    # the order of the other half among themselves).
+    grip = 0.6 * mean_over_held(checks.coverage) + 0.2 * margin + 0.2 * balance
+    return holds, 0.5 * mean_over_held(checks.resistance) + 0.5 * grip
