@@ -31,29 +31,29 @@ occupied voxel of s, i.e. the part overlaps the occupied voxel cubes to within t
 All completions are tested at once: the S occupancy grids are packed into one bit word per voxel (bit s =
 completion s), so each sample point costs one gather and a bitwise OR, whatever S.
 
-Score = (weighted) fraction of completions the grasp holds for. Ties are broken by the *secondary* term in
-[0, 1]: ``0.5 * weight held + 0.5 * (0.6 * pad contact + 0.2 * opening margin + 0.2 * balance)``. Weight held
-(``GraspChecks.resistance``) is the mean over the completions the grasp holds for of the share of the
-completion's weight (voxel volume x ``object_density``, at its centroid) that the pads can hold, capped at 1:
-each pad, pressed with ``grip_force``, holds the weight's part across the closing axis and its moment about
-that axis by friction (coefficient ``friction``) over its contact patch, up to the soft-finger limit
-``(f / mu F)^2 + (tau / (mu F r))^2 <= 1`` (r = the patch's mean radius), and the moment across the axis by
-the spread of its pressure over the patch, both at once while their shares of those limits sum to <= 1; a load along the closing axis is not held by force-controlled
-fingers (``holds_axial_load``). A pinch of a thin handle touches a narrow strip while the mug's weight hangs
-6-7 cm away about the closing axis: in the grasp trials such pinches slipped by turning about the closing
-axis, and those with the larger twist per patch radius slipped more (records of ``grasp_trials/planner2``).
-Grasps that hold the whole weight (body grasps on flat faces) keep the order of the other half. Pad contact is the mean, over the
-completions the grasp holds for, of the fraction of the two finger pads (finger-width x finger-length faces,
-sampled on the lattice) that touch the object when the fingers close on it: a pad cell touches when the object along its
-line across the closing region lies within one voxel of the pad's first contact. Deep grasps on faces
-square to the closing axis touch with the whole pad; fingertip grasps, and grasps across a box's corner or
-on a slanted face, touch with a small part. Opening margin is ``(max_opening - width) / max_opening``:
-spare opening tolerates pose error. Balance is the mean over the same completions of
-``1 - lever / max_opening`` (clipped to [0, 1]), lever = the arm of the completion's weight (at its centroid)
-about the grasp, the part of the moment that lies across the closing axis: two pads resist a moment about the
-closing axis by friction over both pads, but one across it only by pressing unevenly, which a small contact
-cannot (in the grasp trials every grasp pinching a mug's handle from above and below slipped, 9 of 9, where
-pinches across the handle held). Contact normals are not checked otherwise (voxel normals are coarse).
+Score = (weighted) fraction of completions the grasp holds for. Ties are broken by the *secondary* term in [0, 1]:
+``0.5 * weight held + 0.5 * (0.6 * pad contact + 0.2 * opening margin + 0.2 * balance)``. Weight held
+(``GraspChecks.resistance``) is the mean over the completions the grasp holds for of the share of the completion's
+weight (voxel volume x ``object_density``, at its centroid) that the pads can hold, capped at 1: each pad, pressed
+with ``grip_force``, holds the weight's part across the closing axis and its moment about that axis by friction
+(coefficient ``friction``) over its contact patch, up to the soft-finger limit ``(f / mu F)^2 + (tau / (mu F r))^2
+<= 1`` (r = the patch's mean radius), and the moment across the axis by the spread of its pressure over the patch,
+both at once while their shares of those limits sum to <= 1; a load along the closing axis is not held by
+force-controlled fingers (``holds_axial_load``). A pinch of a thin handle touches a narrow strip while the mug's
+weight hangs 6-7 cm away about the closing axis: in the grasp trials such pinches slipped by turning about the
+closing axis, and those with the larger twist per patch radius slipped more (records of ``grasp_trials/planner2``).
+Grasps that hold the whole weight (body grasps on flat faces) keep the order of the other half. Pad contact is the
+mean, over the completions the grasp holds for, of the fraction of the two finger pads (finger-width x finger-length
+faces, sampled on the lattice) that touch the object when the fingers close on it: a pad cell touches when the
+object along its line across the closing region lies within one voxel of the pad's first contact. Deep grasps on
+faces square to the closing axis touch with the whole pad; fingertip grasps, and grasps across a box's corner or on
+a slanted face, touch with a small part. Opening margin is ``(max_opening - width) / max_opening``: spare opening
+tolerates pose error. Balance is the mean over the same completions of ``1 - lever / max_opening`` (clipped to [0,
+1]), lever = the arm of the completion's weight (at its centroid) about the grasp, the part of the moment that lies
+across the closing axis: two pads resist a moment about the closing axis by friction over both pads, but one across
+it only by pressing unevenly, which a small contact cannot (in the grasp trials every grasp pinching a mug's handle
+from above and below slipped, 9 of 9, where pinches across the handle held). Contact normals are not checked
+otherwise (voxel normals are coarse).
 
 Candidates (:func:`generate_candidates`, module ``candidates``). Anchors are the surface voxels of the union
 of the completions plus the observed points, drawn with a bias towards thin parts (``thin_anchor_bias``: a
