@@ -185,8 +185,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "serve the service only", default=False),
     ParamSpec("max_rate_hz", "continuous mode: largest completion rate, Hz", 0.01, 100.0, default=2.0),
     ParamSpec("continuous_grasps", "continuous mode: also compute and publish grasps", default=True),
-    ParamSpec("publish_service_results", "also publish each service result on the output topics (RViz shows what "
-              "a planner asked for)", default=False),
+    ParamSpec("publish_service_results", "also publish each service (and action) result on the output topics "
+              "(RViz shows what a planner asked for)", default=False),
     ParamSpec("grasp_max_opening", "gripper: largest distance between the finger pads, metres", 0.005, 0.5,
               field="grasps.gripper.max_opening"),
     ParamSpec("grasp_finger_length", "gripper: finger length from palm to fingertips, metres", 0.001, 0.5,
