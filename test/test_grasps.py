@@ -243,9 +243,11 @@ def test_ranking_scores_and_determinism():
     assert other.scores[0] == first.scores[0] == 1.0
     # The default: the expected grip first, then the secondary term.
     grip = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=3))
-    key = np.stack([grip.grip, grip.secondary], axis=1)
+    key = np.stack([grip.grip, grip.scores, grip.secondary], axis=1)
     for a, b in zip(key[:-1], key[1:], strict=True):
-        assert a[0] > b[0] or (a[0] == b[0] and a[1] >= b[1])
+        assert a[0] > b[0] or (a[0] == b[0] and (a[1] > b[1] or (a[1] == b[1] and a[2] >= b[2])))
+    checks = check_grasps(grip.grid, occ, identity_pose(), 2.0, CONFIG)
+    np.testing.assert_allclose(grip.grip, (checks.holds * checks.coverage * checks.resistance).mean(axis=1))
 
 
 def test_expected_grip_prefers_a_flat_grip_of_most_completions_to_clipping_every_ones_edge():

@@ -97,10 +97,10 @@ class GraspConfig:
             comes out heavier than it is.
         rank_by: how grasps are ranked. ``"expected_grip"`` (default): by the expected grip over the completions'
             weights, ``sum_s w_s holds_s coverage_s resistance_s`` (pad contact x share of the weight held, 0 where
-            the grasp does not hold), then the tie-break term. A grasp that holds for every completion by clipping
-            each one's edge or corner (little pad contact) ranks below one that grips most of them flat: behind a
-            slit, where the completions disagree about the hidden extents, the first kind touches the real box
-            with a fingertip's corner or across its edges and misses or slips (issue 26). ``"fraction"``: by the
+            the grasp does not hold), then the score, then the tie-break term. A grasp that holds for every
+            completion by clipping each one's edge or corner (little pad contact) ranks below one that grips most of
+            them flat: behind a slit, where the completions disagree about the hidden extents, the first kind
+            touches the real box with part of the pads and misses or slips (issue 26). ``"fraction"``: by the
             (weighted) fraction of completions held (the score), then the tie-break term.
         seed: seed of the anchor/orientation sampling and of the final subset.
     """

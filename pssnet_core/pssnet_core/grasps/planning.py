@@ -23,8 +23,10 @@ def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.
         scores = holds.mean(axis=1)
     else:  # the weighted fraction: the share of the completions' weight a grasp holds for
         scores = holds @ weights
-    # The expected grip first where given (GraspConfig.rank_by), else the score; then the secondary term; stable.
-    order = np.lexsort((-secondary, -(scores if grip is None else grip)))
+    # The expected grip first where given (GraspConfig.rank_by), then the score (a grasp that holds but grips with no
+    # contact or weight share still ranks above one that holds for nothing), then the secondary term; stable.
+    keys = (-secondary, -scores) if grip is None else (-secondary, -scores, -grip)
+    order = np.lexsort(keys)
     c = candidates.subset(order)
     poses = np.tile(np.eye(4), (len(c), 1, 1))
     poses[:, :3, :3] = np.einsum("ij,kjl->kil", pose.rotation, c.rotations)
