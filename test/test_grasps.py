@@ -226,8 +226,10 @@ def lowest_gripper_z(grasps) -> np.ndarray:
 def test_ranking_scores_and_determinism():
     occ = bar(4)
     occ[2:, 15:18, 8:24, 2:20] = True  # two of four completions are thicker (8 voxels)
-    first = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=3))
-    again = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=3))
+    by_fraction = GraspConfig(max_candidates=60, seed=3, rank_by="fraction")
+    first = plan_grasps(occ, identity_pose(), support_z=2.0, config=by_fraction)
+    again = plan_grasps(occ, identity_pose(), support_z=2.0, config=by_fraction)
+    assert first.grip is None
     assert 0 < len(first) <= 60
     np.testing.assert_array_equal(first.poses, again.poses)
     np.testing.assert_array_equal(first.holds, again.holds)
@@ -236,8 +238,41 @@ def test_ranking_scores_and_determinism():
     key = np.stack([first.scores, first.secondary], axis=1)
     for a, b in zip(key[:-1], key[1:], strict=True):
         assert a[0] > b[0] or (a[0] == b[0] and a[1] >= b[1])
-    other = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=4))
+    other = plan_grasps(occ, identity_pose(), support_z=2.0,
+                        config=dataclasses.replace(by_fraction, seed=4))
     assert other.scores[0] == first.scores[0] == 1.0
+    # The default: the expected grip first, then the secondary term.
+    grip = plan_grasps(occ, identity_pose(), support_z=2.0, config=GraspConfig(max_candidates=60, seed=3))
+    key = np.stack([grip.grip, grip.scores, grip.secondary], axis=1)
+    for a, b in zip(key[:-1], key[1:], strict=True):
+        assert a[0] > b[0] or (a[0] == b[0] and (a[1] > b[1] or (a[1] == b[1] and a[2] >= b[2])))
+    checks = check_grasps(grip.grid, occ, identity_pose(), 2.0, CONFIG)
+    np.testing.assert_allclose(grip.grip, (checks.holds * checks.coverage * checks.resistance).mean(axis=1))
+
+
+def test_expected_grip_prefers_a_flat_grip_of_most_completions_to_clipping_every_ones_edge():
+    # Four completions disagree about where a bar lies along y: three span y = 4..16, one 15..27. Only the 1-voxel
+    # overlap lies in all four: a grasp over it (y = 15.5) holds for every completion but touches each with half its
+    # pads, as it would touch the real bar. One over y = 10.5 grips three of them with the whole pads.
+    occ = np.zeros((4, N, N, N), dtype=bool)
+    occ[:3, 10:15, 4:16, 2:20] = True
+    occ[3, 10:15, 15:27, 2:20] = True
+
+    def allowed(c: GraspCandidates) -> np.ndarray:  # closing along x, over y = 10.5 or 15.5
+        return np.isin(c.origins[:, 1], (10.5, 15.5)) & (np.abs(c.rotations[:, 0, 1]) > 0.99)
+
+    config = GraspConfig(top_yaws=2, side_yaws=0, tilted_pitches=(), max_candidates=400, seed=1)
+    expected = plan_grasps(occ, identity_pose(), support_z=2.0, config=config, allowed=allowed)
+    fraction = plan_grasps(occ, identity_pose(), support_z=2.0, config=dataclasses.replace(config, rank_by="fraction"),
+                           allowed=allowed)
+    assert fraction.grid.origins[0, 1] == 15.5 and fraction.scores[0] == 1.0 and fraction.grip is None
+    assert expected.grid.origins[0, 1] == 10.5 and expected.scores[0] == 0.75
+    flat = check_grasps(expected.grid.subset(np.array([0])), occ, identity_pose(), 2.0, config)
+    clipped = check_grasps(fraction.grid.subset(np.array([0])), occ, identity_pose(), 2.0, config)
+    assert flat.coverage[0, :3].min() > 0.8 and clipped.coverage[0].max() < 0.6
+    assert expected.grip[0] == np.max(expected.grip) == pytest.approx(flat.coverage[0, :3].sum() / 4)
+    with pytest.raises(GraspError, match="rank_by"):
+        GraspConfig(rank_by="score")
 
 
 def test_many_completions_use_several_bit_words():

@@ -31,7 +31,12 @@ occupied voxel of s, i.e. the part overlaps the occupied voxel cubes to within t
 All completions are tested at once: the S occupancy grids are packed into one bit word per voxel (bit s =
 completion s), so each sample point costs one gather and a bitwise OR, whatever S.
 
-Score = (weighted) fraction of completions the grasp holds for. Ties are broken by the *secondary* term in [0, 1]:
+Score = (weighted) fraction of completions the grasp holds for. Grasps are ranked (``GraspConfig.rank_by``, default
+``"expected_grip"``) by the *expected grip* :func:`~pssnet_core.grasps.scoring.expected_grip`, the (weighted) mean over
+the completions of ``holds x pad contact x weight held`` (0 where it does not hold), or else by the score. Where the
+completions disagree about hidden extents (a box behind a slit), the grasps that hold for all of them often clip
+each one's edge or corner, and touch the real object with a corner of the pads: the fraction alone ranks them
+first, and in the grasp trials they missed or slipped (issue 26). Ties are broken by the *secondary* term in [0, 1]:
 ``0.5 * weight held + 0.5 * (0.6 * pad contact + 0.2 * opening margin + 0.2 * balance)``. Weight held
 (``GraspChecks.resistance``) is the mean over the completions the grasp holds for of the share of the completion's
 weight (voxel volume x ``object_density``, at its centroid) that the pads can hold, capped at 1: each pad, pressed
@@ -97,7 +102,7 @@ from pssnet_core.grasps.results import (
     SingleCompletionChoice,
     matrix_to_position_quaternion,
 )
-from pssnet_core.grasps.scoring import GraspChecks, check_grasps, score_grasps
+from pssnet_core.grasps.scoring import GraspChecks, check_grasps, expected_grip, score_grasps
 
 __all__ = [
     "KIND_NAMES",
@@ -110,6 +115,7 @@ __all__ = [
     "SingleCompletionChoice",
     "approach_orientations",
     "check_grasps",
+    "expected_grip",
     "estimate_support_height",
     "generate_candidates",
     "gripper_lines",

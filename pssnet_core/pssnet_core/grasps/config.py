@@ -63,6 +63,9 @@ class GripperConfig:
                              f"got {self.min_object_width}")
 
 
+RANKINGS = ("expected_grip", "fraction")
+
+
 @dataclass(frozen=True)
 class GraspConfig:
     """Candidate generation and scoring options.
@@ -92,6 +95,13 @@ class GraspConfig:
             weight (kg/m^3). 1000 (water, a filled container) lies between packed cardboard boxes (~400) and
             solid ceramic (~2300); a voxel solid overstates a thin wall's volume, so a thin-walled ceramic mug
             comes out heavier than it is.
+        rank_by: how grasps are ranked. ``"expected_grip"`` (default): by the expected grip over the completions'
+            weights, ``sum_s w_s holds_s coverage_s resistance_s`` (pad contact x share of the weight held, 0 where
+            the grasp does not hold), then the score, then the tie-break term. A grasp that holds for every
+            completion by clipping each one's edge or corner (little pad contact) ranks below one that grips most of
+            them flat: behind a slit, where the completions disagree about the hidden extents, the first kind
+            touches the real box with part of the pads and misses or slips (issue 26). ``"fraction"``: by the
+            (weighted) fraction of completions held (the score), then the tie-break term.
         seed: seed of the anchor/orientation sampling and of the final subset.
     """
 
@@ -108,6 +118,7 @@ class GraspConfig:
     oversample: float = 3.0
     friction: float = 0.5
     object_density: float = 1000.0
+    rank_by: str = "expected_grip"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -146,6 +157,8 @@ class GraspConfig:
             raise GraspError(f"friction must be in [0.05, 2], got {self.friction!r}")
         if isinstance(self.object_density, bool) or not 10.0 <= float(self.object_density) <= 25000.0:
             raise GraspError(f"object_density must be in [10, 25000] kg/m^3, got {self.object_density!r}")
+        if self.rank_by not in RANKINGS:
+            raise GraspError(f"rank_by must be one of {RANKINGS}, got {self.rank_by!r}")
         if self.seed < 0:
             raise GraspError(f"seed must be >= 0, got {self.seed}")
 

@@ -12,18 +12,21 @@ from pssnet_core.grasps.config import GraspConfig, GraspError
 from pssnet_core.grasps.inputs import check_occupancy, check_points, check_weights, support_height_of
 from pssnet_core.grasps.lattice import PackedGrids
 from pssnet_core.grasps.results import KIND_NAMES, GraspCandidates, GraspSet, SingleCompletionChoice
-from pssnet_core.grasps.scoring import checks_from_packed, holds_and_secondary, score_grasps
+from pssnet_core.grasps.scoring import checks_from_packed, expected_grip, holds_and_secondary, score_grasps
 
 
 def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
-                  support_z: float, weights: np.ndarray | None = None) -> GraspSet:
+                  support_z: float, weights: np.ndarray | None = None, grip: np.ndarray | None = None) -> GraspSet:
     if not holds.shape[1]:
         scores = np.zeros(len(candidates))
     elif weights is None:
         scores = holds.mean(axis=1)
     else:  # the weighted fraction: the share of the completions' weight a grasp holds for
         scores = holds @ weights
-    order = np.lexsort((-secondary, -scores))  # score first, then the secondary term; stable
+    # The expected grip first where given (GraspConfig.rank_by), then the score (a grasp that holds but grips with no
+    # contact or weight share still ranks above one that holds for nothing), then the secondary term; stable.
+    keys = (-secondary, -scores) if grip is None else (-secondary, -scores, -grip)
+    order = np.lexsort(keys)
     c = candidates.subset(order)
     poses = np.tile(np.eye(4), (len(c), 1, 1))
     poses[:, :3, :3] = np.einsum("ij,kjl->kil", pose.rotation, c.rotations)
@@ -31,7 +34,7 @@ def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.
     kinds = np.array([KIND_NAMES[i] for i in c.kinds], dtype=object)
     return GraspSet(poses=poses, widths=c.widths * pose.voxel_size, scores=scores[order], holds=holds[order],
                     secondary=secondary[order], kinds=kinds, grid=c, support_z=float(support_z),
-                    voxel_size=float(pose.voxel_size))
+                    voxel_size=float(pose.voxel_size), grip=None if grip is None else grip[order])
 
 
 def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
@@ -69,7 +72,8 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
     candidates = candidates_from_packed(bits, occupancy.any(axis=0), pose, points, config, support_z, allowed)
     checks = checks_from_packed(candidates, bits, pose, support_z, config)
     holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
-    return _to_grasp_set(candidates, holds, secondary, pose, support_z, weights)
+    grip = expected_grip(checks, weights) if config.rank_by == "expected_grip" else None
+    return _to_grasp_set(candidates, holds, secondary, pose, support_z, weights, grip)
 
 
 def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, points: np.ndarray | None = None,

@@ -53,6 +53,8 @@ class GraspSet:
         grid: the same grasps in grid coordinates.
         support_z: height of the support plane in grid coordinates (voxels).
         voxel_size: voxel edge (metres).
+        grip: (K,) the expected grip over the completions (``GraspConfig.rank_by``; see the package docstring), or
+            None when not computed.
     """
 
     poses: np.ndarray
@@ -64,6 +66,7 @@ class GraspSet:
     grid: GraspCandidates
     support_z: float
     voxel_size: float
+    grip: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.scores)
@@ -73,7 +76,7 @@ class GraspSet:
         index = np.arange(len(self))[index]
         return GraspSet(self.poses[index], self.widths[index], self.scores[index], self.holds[index],
                         self.secondary[index], self.kinds[index], self.grid.subset(index), self.support_z,
-                        self.voxel_size)
+                        self.voxel_size, None if self.grip is None else self.grip[index])
 
     def top(self, k: int, min_score: float = 0.0) -> GraspSet:
         """The best ``k`` grasps whose score is at least ``min_score``."""

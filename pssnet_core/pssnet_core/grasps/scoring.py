@@ -261,3 +261,18 @@ def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config
     # the order of the other half among themselves).
     grip = 0.6 * mean_over_held(checks.coverage) + 0.2 * margin + 0.2 * balance
     return holds, 0.5 * mean_over_held(checks.resistance) + 0.5 * grip
+
+
+def expected_grip(checks: GraspChecks, weights: np.ndarray | None = None) -> np.ndarray:
+    """(K,) the expected grip of each grasp over the completions (``GraspConfig.rank_by = "expected_grip"``).
+
+    Per completion: 0 where the grasp does not hold, else its pad contact times the share of the weight the pads
+    hold; averaged with ``weights`` ((S,) summing to 1; None: alike). Where the completions disagree about the
+    object's hidden extents, the grasp that holds for every one of them often does so by clipping an edge or a
+    corner of each (the only place they all share): it touches little of the pads in each, and the real object
+    likewise. The fraction held alone cannot tell it from a grasp that grips most completions flat.
+    """
+    per = checks.holds * checks.coverage * checks.resistance
+    if per.shape[1] == 0:
+        return np.zeros(per.shape[0])
+    return per.mean(axis=1) if weights is None else per @ weights
