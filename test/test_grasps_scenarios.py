@@ -226,4 +226,4 @@ if __name__ == "__main__":
                 observed=scenario.observation.points,
                 title=f"mug, handle hidden; {len(scenario.completions)} completions (handle at "
                       f"{', '.join(f'{y:.0f}' for y in scenario.extra['yaws'])} deg)")
-    print(f"wrote {out}: {len(result)} grasps, best score {result.scores[0]:.2f}")
+    print(f"wrote {out}: {len(result)} grasps, top grasp's score {result.scores[0]:.2f}")
