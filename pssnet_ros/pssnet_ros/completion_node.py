@@ -381,6 +381,8 @@ class CompletionNode(LifecycleNode):
     # qos_overrides.*) pass these callbacks too, and rclpy has its own rules for them.
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
         params = [p for p in params if p.name in SPECS]
+        if not params:  # not checked against the node's values, which may be invalid until a configure refuses them
+            return SetParametersResult(successful=True)
         values = dict(self._values)
         for param in params:
             values[param.name] = param.value
