@@ -190,7 +190,7 @@ def _weight_resistance(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, 
     cell_x, cell_z = (a.ravel()[:, None, None] for a in np.meshgrid(xs, zs, indexing="ij"))
     n = [touching.sum(axis=0) for touching in patches]
     centres = [((t * cell_x).sum(axis=0) / np.maximum(c, 1), (t * cell_z).sum(axis=0) / np.maximum(c, 1))
-               for t, c in zip(patches, n, strict=False)]
+               for t, c in zip(patches, n, strict=True)]
     cx = 0.5 * (centres[0][0] + centres[1][0])
     cz = 0.5 * (centres[0][1] + centres[1][1])
     axis_point = origins[:, None, :] + cx[..., None] * rot[:, None, :, 0] + cz[..., None] * rot[:, None, :, 2]
@@ -207,7 +207,7 @@ def _weight_resistance(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, 
     shift_x = np.sum(shift * rot[:, None, :, 0], axis=2)
     shift_z = np.sum(shift * rot[:, None, :, 2], axis=2)
     radius, reach = np.zeros(twist.shape), np.zeros(twist.shape)
-    for touching, count, (px, pz) in zip(patches, n, centres, strict=False):
+    for touching, count, (px, pz) in zip(patches, n, centres, strict=True):
         dx, dz = cell_x - px, cell_z - pz
         radius += (touching * np.hypot(dx, dz)).sum(axis=0) / np.maximum(count, 1)
         reach += np.where(touching, np.abs(dx * shift_x + dz * shift_z), 0.0).max(axis=0)
@@ -259,8 +259,8 @@ def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config
     balance = mean_over_held(np.clip(1.0 - checks.lever / wmax, 0.0, 1.0))
     # Half the term: the share of the weight the pads hold (1 for every grasp that holds all of it, so those keep
     # the order of the other half among themselves).
-    grip = 0.6 * mean_over_held(checks.coverage) + 0.2 * margin + 0.2 * balance
-    return holds, 0.5 * mean_over_held(checks.resistance) + 0.5 * grip
+    contact_term = 0.6 * mean_over_held(checks.coverage) + 0.2 * margin + 0.2 * balance
+    return holds, 0.5 * mean_over_held(checks.resistance) + 0.5 * contact_term
 
 
 def expected_grip(checks: GraspChecks, weights: np.ndarray | None = None) -> np.ndarray:
