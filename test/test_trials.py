@@ -263,8 +263,11 @@ def test_the_command_is_registered_with_its_options():
     args = build_parser().parse_args(["grasp-trials", "--trials", "3", "--strategies", "oracle,random",
                                       "--scenarios", "control"])
     assert args.trials == 3 and args.strategies == ("oracle", "random") and args.scenarios == ("control",)
-    with pytest.raises(SystemExit):
-        build_parser().parse_args(["grasp-trials", "--scenarios", "kitchen"])
+    assert args.rank_by == GraspConfig().rank_by
+    assert build_parser().parse_args(["grasp-trials", "--rank-by", "fraction"]).rank_by == "fraction"
+    for wrong in (["--scenarios", "kitchen"], ["--rank-by", "luck"]):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["grasp-trials", *wrong])
     assert args.func(build_parser().parse_args(["grasp-trials", "--strategies", "vae"])) == 2  # no VAE checkpoint
 
 

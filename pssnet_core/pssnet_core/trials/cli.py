@@ -8,6 +8,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from pssnet_core.grasps.config import RANKINGS, GraspConfig
 from pssnet_core.trials import HEADLESS_GL, OBJECT_SOURCES, SCENARIOS, STRATEGIES
 
 
@@ -39,6 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--num-samples", type=int, default=20, help="completions per view (the node's default: 20)")
     p.add_argument("--sampler", choices=("posterior", "checked"), default="checked",
                    help="how PSSNet and the VAE draw their samples (the node's sampler parameter; default checked)")
+    p.add_argument("--rank-by", choices=RANKINGS, default=GraspConfig.rank_by,
+                   help="how the planner ranks grasps (GraspConfig.rank_by; default %(default)s)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
     p.add_argument("--out", type=Path, default=Path("results/grasp_trials"), help="output directory")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -58,7 +61,8 @@ def run_command(args: argparse.Namespace) -> int:
     config = TrialsConfig(scenarios=args.scenarios, strategies=args.strategies, trials=args.trials, seed=args.seed,
                           num_samples=args.num_samples, sampler=args.sampler, filmstrip_scenes=args.filmstrip_scenes,
                           checkpoints=checkpoints)
-    config = replace(config, scenario=replace(config.scenario, objects=args.objects))
+    config = replace(config, scenario=replace(config.scenario, objects=args.objects),
+                     grasps=replace(config.grasps, rank_by=args.rank_by))
     if args.cache_dir is not None:
         config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
     try:
