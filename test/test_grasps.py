@@ -15,11 +15,13 @@ from scipy.spatial.transform import Rotation
 from pssnet_core.geometry import GridPose
 from pssnet_core.grasps import (
     GraspCandidates,
+    GraspChecks,
     GraspConfig,
     GraspError,
     GripperConfig,
     check_grasps,
     estimate_support_height,
+    expected_grip,
     generate_candidates,
     matrix_to_position_quaternion,
     plan_grasps,
@@ -273,6 +275,33 @@ def test_expected_grip_prefers_a_flat_grip_of_most_completions_to_clipping_every
     assert expected.grip[0] == np.max(expected.grip) == pytest.approx(flat.coverage[0, :3].sum() / 4)
     with pytest.raises(GraspError, match="rank_by"):
         GraspConfig(rank_by="score")
+
+
+def test_collision_penalty_ranks_a_hand_that_lands_on_a_completion_below_one_that_misses_it():
+    # Two grasps, two completions alike: A grips completion 0 flat and comes down on completion 1; B grips completion 0
+    # with 80 % of its pads and misses completion 1. As a miss, the collision leaves A ahead; penalised, B leads.
+    k, s = 2, 2
+    true, false = np.ones((k, s), bool), np.zeros((k, s), bool)
+    hit = false.copy()
+    hit[0, 1] = True
+    checks = GraspChecks(fits=np.ones(k, bool), above=np.ones(k, bool), contains=np.array([[True, False]] * 2),
+                         finger_hit=hit, palm_hit=false, coverage=np.array([[1.0, 0.0], [0.8, 0.0]]),
+                         squeezed_out=false, lever=np.zeros((k, s)), resistance=true.astype(float))
+    np.testing.assert_allclose(expected_grip(checks), [0.5, 0.4])
+    np.testing.assert_allclose(expected_grip(checks, collision_penalty=1.0), [0.0, 0.4])
+    np.testing.assert_allclose(expected_grip(checks, np.array([0.9, 0.1]), 1.0), [0.8, 0.72])
+    # plan_grasps passes GraspConfig.collision_penalty on: its grips are the penalised expected grip, ranked first.
+    occ = np.zeros((2, N, N, N), dtype=bool)
+    occ[:, 10:15, 4:16, 2:20] = True
+    occ[1, 8:17, 4:16, 2:20] = True  # the second completion is wider: narrow grasps land on it
+    config = GraspConfig(max_candidates=80, seed=2, collision_penalty=1.0)
+    planned = plan_grasps(occ, identity_pose(), support_z=2.0, config=config)
+    found = check_grasps(planned.grid, occ, identity_pose(), 2.0, config)
+    assert (found.finger_hit | found.palm_hit).any()
+    np.testing.assert_allclose(planned.grip, expected_grip(found, collision_penalty=1.0))
+    assert np.all(np.diff(planned.grip) <= 1e-12)
+    with pytest.raises(GraspError, match="collision_penalty"):
+        GraspConfig(collision_penalty=-1.0)
 
 
 def test_many_completions_use_several_bit_words():

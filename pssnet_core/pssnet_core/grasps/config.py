@@ -102,6 +102,10 @@ class GraspConfig:
             them flat: behind a slit, where the completions disagree about the hidden extents, the first kind
             touches the real box with part of the pads and misses or slips (issue 26). ``"fraction"``: by the
             (weighted) fraction of completions held (the score), then the tie-break term.
+        collision_penalty: with ``rank_by="expected_grip"``, subtracted from the expected grip for each (weighted)
+            completion the fingers or palm would run into on the way in, so that where the completions disagree
+            the planner prefers a grasp that misses some of them to one that lands on some of them. 0: a
+            collision counts as a miss.
         seed: seed of the anchor/orientation sampling and of the final subset.
     """
 
@@ -119,6 +123,7 @@ class GraspConfig:
     friction: float = 0.5
     object_density: float = 1000.0
     rank_by: str = "expected_grip"
+    collision_penalty: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -157,6 +162,8 @@ class GraspConfig:
             raise GraspError(f"friction must be in [0.05, 2], got {self.friction!r}")
         if isinstance(self.object_density, bool) or not 10.0 <= float(self.object_density) <= 25000.0:
             raise GraspError(f"object_density must be in [10, 25000] kg/m^3, got {self.object_density!r}")
+        if isinstance(self.collision_penalty, bool) or not 0.0 <= float(self.collision_penalty) <= 10.0:
+            raise GraspError(f"collision_penalty must be in [0, 10], got {self.collision_penalty!r}")
         if self.rank_by not in RANKINGS:
             raise GraspError(f"rank_by must be one of {RANKINGS}, got {self.rank_by!r}")
         if self.seed < 0:
