@@ -24,6 +24,7 @@ from pssnet_core.grasps import (
     expected_grip,
     generate_candidates,
     matrix_to_position_quaternion,
+    observed_face_yaws,
     plan_grasps,
     plot_grasps,
     score_grasps,
@@ -83,6 +84,8 @@ def test_gripper_config_rejects_absurd_values(kwargs, message):
     ({"seed": -1}, "seed"),
     ({"friction": 0.0}, "friction"),
     ({"object_density": -1.0}, "object_density"),
+    ({"collision_penalty": 11.0}, "collision_penalty"),
+    ({"observed_face_yaws": 1}, "observed_face_yaws"),
     ({"gripper": {"max_opening": 0.08}}, "GripperConfig"),
 ])
 def test_grasp_config_rejects_bad_values(kwargs, message):
@@ -344,6 +347,35 @@ def test_top_side_and_tilted_approaches_are_generated():
     np.testing.assert_allclose(tilted[:, 2, 2], -np.sin(np.radians(45.0)), atol=1e-12)  # 45 degrees down
     np.testing.assert_allclose(np.einsum("kij,kil->kjl", tilted, tilted), np.tile(np.eye(3), (len(tilted), 1, 1)),
                                atol=1e-12)
+
+
+def test_top_grasps_close_square_to_the_observed_face():
+    # A box seen face-on, its face turned 30 degrees from grid x: 10 degrees from the nearest evenly spaced yaw
+    # (every 22.5), so only the observed face's own yaws close square to it.
+    angle = np.radians(30.0)
+    along, across = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+    t, z = np.meshgrid(np.linspace(-4.0, 4.0, 9), np.linspace(3.0, 12.0, 4))
+    points_grid = np.stack([*(16.0 + np.outer(t.ravel(), along).T), z.ravel()], axis=1)
+    yaws = np.degrees(observed_face_yaws(points_grid))
+    np.testing.assert_allclose(yaws, [30.0, 120.0], atol=1e-4)
+    assert observed_face_yaws(points_grid[:9]) == () and observed_face_yaws(None) == ()
+    # The near half of a round body is no face.
+    theta = np.linspace(np.pi, 2 * np.pi, 20)
+    arc = np.stack([16 + 5 * np.cos(theta), 16 + 5 * np.sin(theta), np.full(20, 5.0)], axis=1)
+    assert observed_face_yaws(arc) == ()
+    # The planner adds them as top grasps (in the camera frame the grid's identity pose puts the points where they are).
+    box = np.zeros((1, N, N, N), dtype=bool)
+    cells = np.stack(np.meshgrid(np.arange(N), np.arange(N), indexing="ij"), axis=-1) + 0.5 - 16.0
+    inside = (np.abs(cells @ along) <= 4.0) & (np.abs(cells @ across - 3.0) <= 3.0)
+    box[0, inside, 2:12] = True
+    points = identity_pose().grid_to_camera(points_grid)
+    for enabled in (True, False):
+        config = GraspConfig(observed_face_yaws=enabled, max_candidates=2000, side_yaws=0, tilted_pitches=())
+        top = generate_candidates(box, identity_pose(), points, config, support_z=2.0).rotations
+        closing = np.degrees(np.arctan2(top[:, 1, 1], top[:, 0, 1])) % 180.0
+        square = np.isclose(closing, 30.0, atol=1e-3) | np.isclose(closing, 120.0, atol=1e-3)
+        assert square.any() == enabled
+        assert np.isclose(closing, 22.5, atol=1e-3).any()  # the evenly spaced ones stay
 
 
 def handle_behind_body() -> np.ndarray:

@@ -74,6 +74,9 @@ class GraspConfig:
         gripper: the gripper.
         max_candidates: at most this many candidates are scored.
         top_yaws: closing-axis angles of the top (straight-down) approach, evenly over 180 degrees; 0 = none.
+        observed_face_yaws: with top grasps, two more closing axes from the observed points: along the visible
+            surface's horizontal direction and square to it (``candidates.observed_face_yaws``), so that a top grasp
+            can close square to a box's faces wherever they lie between the evenly spaced yaws.
         side_yaws: horizontal approach directions, evenly over 360 degrees; 0 = no side grasps.
         side_rolls: closing-axis angles (degrees) of side grasps about the approach: 0 = horizontal,
             90 = vertical.
@@ -112,6 +115,7 @@ class GraspConfig:
     gripper: GripperConfig = field(default_factory=GripperConfig)
     max_candidates: int = 500
     top_yaws: int = 8
+    observed_face_yaws: bool = True
     side_yaws: int = 24
     side_rolls: tuple[float, ...] = (0.0, 90.0)
     tilted_pitches: tuple[float, ...] = (45.0,)
@@ -162,6 +166,8 @@ class GraspConfig:
             raise GraspError(f"friction must be in [0.05, 2], got {self.friction!r}")
         if isinstance(self.object_density, bool) or not 10.0 <= float(self.object_density) <= 25000.0:
             raise GraspError(f"object_density must be in [10, 25000] kg/m^3, got {self.object_density!r}")
+        if not isinstance(self.observed_face_yaws, bool):
+            raise GraspError(f"observed_face_yaws must be true or false, got {self.observed_face_yaws!r}")
         if isinstance(self.collision_penalty, bool) or not 0.0 <= float(self.collision_penalty) <= 10.0:
             raise GraspError(f"collision_penalty must be in [0, 10], got {self.collision_penalty!r}")
         if self.rank_by not in RANKINGS:
