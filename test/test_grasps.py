@@ -15,16 +15,13 @@ from scipy.spatial.transform import Rotation
 from pssnet_core.geometry import GridPose
 from pssnet_core.grasps import (
     GraspCandidates,
-    GraspChecks,
     GraspConfig,
     GraspError,
     GripperConfig,
     check_grasps,
     estimate_support_height,
-    expected_grip,
     generate_candidates,
     matrix_to_position_quaternion,
-    observed_face_yaws,
     plan_grasps,
     plot_grasps,
     score_grasps,
@@ -84,8 +81,6 @@ def test_gripper_config_rejects_absurd_values(kwargs, message):
     ({"seed": -1}, "seed"),
     ({"friction": 0.0}, "friction"),
     ({"object_density": -1.0}, "object_density"),
-    ({"collision_penalty": 11.0}, "collision_penalty"),
-    ({"observed_face_yaws": 1}, "observed_face_yaws"),
     ({"gripper": {"max_opening": 0.08}}, "GripperConfig"),
 ])
 def test_grasp_config_rejects_bad_values(kwargs, message):
@@ -280,33 +275,6 @@ def test_expected_grip_prefers_a_flat_grip_of_most_completions_to_clipping_every
         GraspConfig(rank_by="score")
 
 
-def test_collision_penalty_ranks_a_hand_that_lands_on_a_completion_below_one_that_misses_it():
-    # Two grasps, two completions alike: A grips completion 0 flat and comes down on completion 1; B grips completion 0
-    # with 80 % of its pads and misses completion 1. As a miss, the collision leaves A ahead; penalised, B leads.
-    k, s = 2, 2
-    true, false = np.ones((k, s), bool), np.zeros((k, s), bool)
-    hit = false.copy()
-    hit[0, 1] = True
-    checks = GraspChecks(fits=np.ones(k, bool), above=np.ones(k, bool), contains=np.array([[True, False]] * 2),
-                         finger_hit=hit, palm_hit=false, coverage=np.array([[1.0, 0.0], [0.8, 0.0]]),
-                         squeezed_out=false, lever=np.zeros((k, s)), resistance=true.astype(float))
-    np.testing.assert_allclose(expected_grip(checks), [0.5, 0.4])
-    np.testing.assert_allclose(expected_grip(checks, collision_penalty=1.0), [0.0, 0.4])
-    np.testing.assert_allclose(expected_grip(checks, np.array([0.9, 0.1]), 1.0), [0.8, 0.72])
-    # plan_grasps passes GraspConfig.collision_penalty on: its grips are the penalised expected grip, ranked first.
-    occ = np.zeros((2, N, N, N), dtype=bool)
-    occ[:, 10:15, 4:16, 2:20] = True
-    occ[1, 8:17, 4:16, 2:20] = True  # the second completion is wider: narrow grasps land on it
-    config = GraspConfig(max_candidates=80, seed=2, collision_penalty=1.0)
-    planned = plan_grasps(occ, identity_pose(), support_z=2.0, config=config)
-    found = check_grasps(planned.grid, occ, identity_pose(), 2.0, config)
-    assert (found.finger_hit | found.palm_hit).any()
-    np.testing.assert_allclose(planned.grip, expected_grip(found, collision_penalty=1.0))
-    assert np.all(np.diff(planned.grip) <= 1e-12)
-    with pytest.raises(GraspError, match="collision_penalty"):
-        GraspConfig(collision_penalty=-1.0)
-
-
 def test_many_completions_use_several_bit_words():
     occ = bar(70)
     grasp = top_grasp(12.5, 16.0, 12.5, 5.0 + 2 * CLEAR)
@@ -347,35 +315,6 @@ def test_top_side_and_tilted_approaches_are_generated():
     np.testing.assert_allclose(tilted[:, 2, 2], -np.sin(np.radians(45.0)), atol=1e-12)  # 45 degrees down
     np.testing.assert_allclose(np.einsum("kij,kil->kjl", tilted, tilted), np.tile(np.eye(3), (len(tilted), 1, 1)),
                                atol=1e-12)
-
-
-def test_top_grasps_close_square_to_the_observed_face():
-    # A box seen face-on, its face turned 30 degrees from grid x: 10 degrees from the nearest evenly spaced yaw
-    # (every 22.5), so only the observed face's own yaws close square to it.
-    angle = np.radians(30.0)
-    along, across = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
-    t, z = np.meshgrid(np.linspace(-4.0, 4.0, 9), np.linspace(3.0, 12.0, 4))
-    points_grid = np.stack([*(16.0 + np.outer(t.ravel(), along).T), z.ravel()], axis=1)
-    yaws = np.degrees(observed_face_yaws(points_grid))
-    np.testing.assert_allclose(yaws, [30.0, 120.0], atol=1e-4)
-    assert observed_face_yaws(points_grid[:9]) == () and observed_face_yaws(None) == ()
-    # The near half of a round body is no face.
-    theta = np.linspace(np.pi, 2 * np.pi, 20)
-    arc = np.stack([16 + 5 * np.cos(theta), 16 + 5 * np.sin(theta), np.full(20, 5.0)], axis=1)
-    assert observed_face_yaws(arc) == ()
-    # The planner adds them as top grasps (in the camera frame the grid's identity pose puts the points where they are).
-    box = np.zeros((1, N, N, N), dtype=bool)
-    cells = np.stack(np.meshgrid(np.arange(N), np.arange(N), indexing="ij"), axis=-1) + 0.5 - 16.0
-    inside = (np.abs(cells @ along) <= 4.0) & (np.abs(cells @ across - 3.0) <= 3.0)
-    box[0, inside, 2:12] = True
-    points = identity_pose().grid_to_camera(points_grid)
-    for enabled in (True, False):
-        config = GraspConfig(observed_face_yaws=enabled, max_candidates=2000, side_yaws=0, tilted_pitches=())
-        top = generate_candidates(box, identity_pose(), points, config, support_z=2.0).rotations
-        closing = np.degrees(np.arctan2(top[:, 1, 1], top[:, 0, 1])) % 180.0
-        square = np.isclose(closing, 30.0, atol=1e-3) | np.isclose(closing, 120.0, atol=1e-3)
-        assert square.any() == enabled
-        assert np.isclose(closing, 22.5, atol=1e-3).any()  # the evenly spaced ones stay
 
 
 def handle_behind_body() -> np.ndarray:

@@ -90,7 +90,7 @@ support plane), ``candidates``, ``scoring``, ``planning`` (:func:`plan_grasps`, 
 baseline), ``plotting``.
 """
 
-from pssnet_core.grasps.candidates import approach_orientations, generate_candidates, observed_face_yaws
+from pssnet_core.grasps.candidates import approach_orientations, generate_candidates
 from pssnet_core.grasps.config import GraspConfig, GraspError, GripperConfig
 from pssnet_core.grasps.inputs import estimate_support_height
 from pssnet_core.grasps.planning import plan_grasps, single_completion_choice
@@ -118,7 +118,6 @@ __all__ = [
     "expected_grip",
     "estimate_support_height",
     "generate_candidates",
-    "observed_face_yaws",
     "gripper_lines",
     "gripper_segments",
     "matrix_to_position_quaternion",

@@ -25,15 +25,12 @@ def approach_orientations(config: GraspConfig) -> tuple[np.ndarray, np.ndarray]:
 
 @functools.lru_cache(maxsize=8)
 def _orientations(top_yaws: int, side_yaws: int, side_rolls: tuple[float, ...],
-                  tilted_pitches: tuple[float, ...], extra_top_yaws: tuple[float, ...] = ()
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`approach_orientations`, computed once per option set (read-only arrays: the cache shares them).
-
-    ``extra_top_yaws`` (radians) are top grasps beside the evenly spaced ones (:func:`observed_face_yaws`).
-    """
+                  tilted_pitches: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`approach_orientations`, computed once per option set (read-only arrays: the cache shares them)."""
     rotations, kinds = [], []
     down = np.array([0.0, 0.0, -1.0])
-    for phi in [math.pi * i / top_yaws for i in range(top_yaws)] + list(extra_top_yaws):
+    for i in range(top_yaws):
+        phi = math.pi * i / top_yaws
         y = np.array([math.cos(phi), math.sin(phi), 0.0])
         rotations.append(np.stack([np.cross(y, down), y, down], axis=1))
         kinds.append(0)
@@ -52,34 +49,6 @@ def _orientations(top_yaws: int, side_yaws: int, side_rolls: tuple[float, ...],
     rotations, kinds = np.asarray(rotations, dtype=np.float64), np.asarray(kinds, dtype=np.int8)
     rotations.flags.writeable = kinds.flags.writeable = False
     return rotations, kinds
-
-
-#: Largest ratio of the observed points' horizontal spread across their major axis to the spread along it (standard
-#: deviations) that still counts as one flat face: a face seen with a few millimetres of depth noise is ~0.05, the
-#: visible half of a round body ~0.4.
-FACE_FLATNESS = 0.2
-
-
-def observed_face_yaws(points_grid: np.ndarray | None) -> tuple[float, ...]:
-    """Two top-grasp yaws (radians, [0, pi)) that close square to the observed surface and along it.
-
-    The evenly spaced top yaws (every 22.5 degrees by default) straddle most faces of a box, and a top grasp that
-    closes across a face's edge at an angle meets the box with the pads' corners and turns or slips it. The view
-    shows the visible face's direction: the observed points' horizontal spread (grid x-y; z is up) has its major
-    axis along the face, so the two principal axes give a yaw closing along the face and one closing across it.
-    Only where the points lie on one vertical plane (their spread across the major axis at most
-    ``FACE_FLATNESS`` of the spread along it): a round body or two faces seen at a corner have no such direction,
-    and fewer than 10 points none to speak of.
-    """
-    if points_grid is None or len(points_grid) < 10:
-        return ()
-    xy = points_grid[:, :2] - points_grid[:, :2].mean(axis=0)
-    values, vectors = np.linalg.eigh(xy.T @ xy)
-    if values[0] > FACE_FLATNESS**2 * values[1]:
-        return ()
-    phi = math.atan2(vectors[1, 1], vectors[0, 1]) % math.pi
-    # Rounded: the orientation cache is keyed on them, and a millionth of a radian changes no grasp.
-    return round(phi, 6), round((phi + math.pi / 2) % math.pi, 6)
 
 
 def _anchors(union: np.ndarray, points_grid: np.ndarray | None) -> np.ndarray:
@@ -159,9 +128,8 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     dims = VoxelDims.of(config, pose.voxel_size)
     points_grid = pose.camera_to_grid(points) if points is not None else None
     anchors = _anchors(union, points_grid)
-    extra_yaws = observed_face_yaws(points_grid) if config.observed_face_yaws and config.top_yaws else ()
     rotations_all, kinds_all = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls),
-                                             tuple(config.tilted_pitches), extra_yaws)
+                                             tuple(config.tilted_pitches))
     if len(anchors) == 0:
         return GraspCandidates.empty()
     rng = np.random.default_rng(config.seed)

@@ -74,9 +74,6 @@ class GraspConfig:
         gripper: the gripper.
         max_candidates: at most this many candidates are scored.
         top_yaws: closing-axis angles of the top (straight-down) approach, evenly over 180 degrees; 0 = none.
-        observed_face_yaws: with top grasps, two more closing axes from the observed points: along the visible
-            surface's horizontal direction and square to it (``candidates.observed_face_yaws``), so that a top grasp
-            can close square to a box's faces wherever they lie between the evenly spaced yaws.
         side_yaws: horizontal approach directions, evenly over 360 degrees; 0 = no side grasps.
         side_rolls: closing-axis angles (degrees) of side grasps about the approach: 0 = horizontal,
             90 = vertical.
@@ -105,17 +102,12 @@ class GraspConfig:
             them flat: behind a slit, where the completions disagree about the hidden extents, the first kind
             touches the real box with part of the pads and misses or slips (issue 26). ``"fraction"``: by the
             (weighted) fraction of completions held (the score), then the tie-break term.
-        collision_penalty: with ``rank_by="expected_grip"``, subtracted from the expected grip for each (weighted)
-            completion the fingers or palm would run into on the way in, so that where the completions disagree
-            the planner prefers a grasp that misses some of them to one that lands on some of them. 0: a
-            collision counts as a miss.
         seed: seed of the anchor/orientation sampling and of the final subset.
     """
 
     gripper: GripperConfig = field(default_factory=GripperConfig)
     max_candidates: int = 500
     top_yaws: int = 8
-    observed_face_yaws: bool = True
     side_yaws: int = 24
     side_rolls: tuple[float, ...] = (0.0, 90.0)
     tilted_pitches: tuple[float, ...] = (45.0,)
@@ -127,7 +119,6 @@ class GraspConfig:
     friction: float = 0.5
     object_density: float = 1000.0
     rank_by: str = "expected_grip"
-    collision_penalty: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -166,10 +157,6 @@ class GraspConfig:
             raise GraspError(f"friction must be in [0.05, 2], got {self.friction!r}")
         if isinstance(self.object_density, bool) or not 10.0 <= float(self.object_density) <= 25000.0:
             raise GraspError(f"object_density must be in [10, 25000] kg/m^3, got {self.object_density!r}")
-        if not isinstance(self.observed_face_yaws, bool):
-            raise GraspError(f"observed_face_yaws must be true or false, got {self.observed_face_yaws!r}")
-        if isinstance(self.collision_penalty, bool) or not 0.0 <= float(self.collision_penalty) <= 10.0:
-            raise GraspError(f"collision_penalty must be in [0, 10], got {self.collision_penalty!r}")
         if self.rank_by not in RANKINGS:
             raise GraspError(f"rank_by must be one of {RANKINGS}, got {self.rank_by!r}")
         if self.seed < 0:

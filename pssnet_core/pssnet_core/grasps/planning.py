@@ -72,7 +72,7 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
     candidates = candidates_from_packed(bits, occupancy.any(axis=0), pose, points, config, support_z, allowed)
     checks = checks_from_packed(candidates, bits, pose, support_z, config)
     holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
-    grip = expected_grip(checks, weights, config.collision_penalty) if config.rank_by == "expected_grip" else None
+    grip = expected_grip(checks, weights) if config.rank_by == "expected_grip" else None
     return _to_grasp_set(candidates, holds, secondary, pose, support_z, weights, grip)
 
 

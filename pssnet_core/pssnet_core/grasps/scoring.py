@@ -263,7 +263,7 @@ def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config
     return holds, 0.5 * mean_over_held(checks.resistance) + 0.5 * contact_term
 
 
-def expected_grip(checks: GraspChecks, weights: np.ndarray | None = None, collision_penalty: float = 0.0) -> np.ndarray:
+def expected_grip(checks: GraspChecks, weights: np.ndarray | None = None) -> np.ndarray:
     """(K,) the expected grip of each grasp over the completions (``GraspConfig.rank_by = "expected_grip"``).
 
     Per completion: 0 where the grasp does not hold, else its pad contact times the share of the weight the pads
@@ -271,13 +271,8 @@ def expected_grip(checks: GraspChecks, weights: np.ndarray | None = None, collis
     object's hidden extents, the grasp that holds for every one of them often does so by clipping an edge or a
     corner of each (the only place they all share): it touches little of the pads in each, and the real object
     likewise. The fraction held alone cannot tell it from a grasp that grips most completions flat.
-
-    ``collision_penalty`` (``GraspConfig.collision_penalty``) is subtracted for each completion the fingers or palm
-    run into: a miss leaves the object where it was, a hand that comes down on it pushes or tips it.
     """
     per = checks.holds * checks.coverage * checks.resistance
-    if collision_penalty:
-        per = per - collision_penalty * (checks.finger_hit | checks.palm_hit)
     if per.shape[1] == 0:
         return np.zeros(per.shape[0])
     return per.mean(axis=1) if weights is None else per @ weights

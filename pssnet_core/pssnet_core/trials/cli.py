@@ -42,8 +42,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="how PSSNet and the VAE draw their samples (the node's sampler parameter; default checked)")
     p.add_argument("--rank-by", choices=RANKINGS, default=GraspConfig.rank_by,
                    help="how the planner ranks grasps (GraspConfig.rank_by; default %(default)s)")
-    p.add_argument("--collision-penalty", type=float, default=GraspConfig.collision_penalty,
-                   help="GraspConfig.collision_penalty (default %(default)s)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
     p.add_argument("--out", type=Path, default=Path("results/grasp_trials"), help="output directory")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -63,11 +61,11 @@ def run_command(args: argparse.Namespace) -> int:
     config = TrialsConfig(scenarios=args.scenarios, strategies=args.strategies, trials=args.trials, seed=args.seed,
                           num_samples=args.num_samples, sampler=args.sampler, filmstrip_scenes=args.filmstrip_scenes,
                           checkpoints=checkpoints)
+    config = replace(config, scenario=replace(config.scenario, objects=args.objects),
+                     grasps=replace(config.grasps, rank_by=args.rank_by))
+    if args.cache_dir is not None:
+        config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
     try:
-        config = replace(config, scenario=replace(config.scenario, objects=args.objects),
-                         grasps=replace(config.grasps, rank_by=args.rank_by, collision_penalty=args.collision_penalty))
-        if args.cache_dir is not None:
-            config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
         if args.trials < 1 or args.num_samples < 1:
             raise ValueError("--trials and --num-samples must be >= 1")
         if "vae" in config.strategies and args.vae_checkpoint is None:
