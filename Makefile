@@ -5,6 +5,10 @@ PY := $(VENV)/bin/python
 # Discovery stays on loopback; the Fast DDS profile enlarges shared memory for image topics.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export FASTRTPS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/pssnet_ros/config/fastdds_profile.xml
+# With the shipped profile, rmw_fastrtps reads its history memory policies: service requests freed once taken.
+ifeq ($(abspath $(FASTRTPS_DEFAULT_PROFILES_FILE)),$(CURDIR)/pssnet_ros/config/fastdds_profile.xml)
+export RMW_FASTRTPS_USE_QOS_FROM_XML ?= 1
+endif
 export PYTHONUNBUFFERED := 1
 
 .PHONY: setup demo test test-slow test-py312 lint colcon colcon-test clean datasets train-all results results-shipped oof-data oof-ambiguity

@@ -44,6 +44,12 @@ LOCK_SUFFIX = "_el"  # Fast DDS: the owner of segment X holds a flock on X_el
 PORT_BASE, DOMAIN_GAIN = 7400, 250
 
 
+#: With it rmw_fastrtps reads the history memory policy (and publication mode, data sharing) from the profile: the
+#: shipped profile frees a service request's payload once taken instead of keeping the buffer at the largest
+#: request's size (set only together with the shipped profile; another profile may not restate rmw's defaults).
+USE_QOS_FROM_XML = "RMW_FASTRTPS_USE_QOS_FROM_XML"
+
+
 def fastdds_profile() -> Path | None:
     """The shipped Fast DDS profile of the pssnet_ros package: its config/ in the source tree (beside the
     package's modules), or share/pssnet_ros/config of an install."""
@@ -57,6 +63,13 @@ def fastdds_profile() -> Path | None:
         return installed if installed.is_file() else None
     except Exception:  # no ament index (package not installed through colcon)
         return None
+
+
+def _same_file(path: str, profile: Path) -> bool:
+    try:
+        return Path(path).resolve() == profile.resolve()
+    except OSError:
+        return False
 
 
 def ros_env(domain_id: int, extra: Mapping[str, str] | None = None, base: Mapping[str, str] | None = None
@@ -77,6 +90,8 @@ def ros_env(domain_id: int, extra: Mapping[str, str] | None = None, base: Mappin
     profile = fastdds_profile()
     if profile is not None:
         env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
+        if _same_file(env["FASTRTPS_DEFAULT_PROFILES_FILE"], profile):
+            env.setdefault(USE_QOS_FROM_XML, "1")
     env["PYTHONUNBUFFERED"] = "1"
     env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
     env.update(extra or {})
@@ -89,6 +104,8 @@ def configure_this_process(domain_id: int) -> None:
     profile = fastdds_profile()
     if profile is not None:
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
+        if _same_file(os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"], profile):
+            os.environ.setdefault(USE_QOS_FROM_XML, "1")
     os.environ["ROS_DOMAIN_ID"] = str(domain_id)
 
 

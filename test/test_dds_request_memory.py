@@ -1,0 +1,107 @@
+"""A service request's payload is freed once taken (issue 29, item 4, RELIABILITY.md "Memory after a burst of
+bad requests").
+
+rmw_fastrtps gives a service's request reader PREALLOCATED_WITH_REALLOC history memory: Fast DDS keeps each
+payload buffer of the reader's pool at the largest request it ever held, so one refused 4000x3000 float request
+held 46 MiB of the node's heap for the rest of its life. The shipped Fast DDS profile, read with
+RMW_FASTRTPS_USE_QOS_FROM_XML=1 (set with it by ``ros_env``), gives request readers DYNAMIC memory instead.
+A bare server (no model) receives one such request; its anonymous memory is compared before and after.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_node_helpers import domain_for
+
+from pssnet_testing.processes import USE_QOS_FROM_XML, RosProcess, ros_env
+
+SERVICE = "/request_memory_probe"
+SERVER = f"""
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from pssnet_interfaces.srv import SampleCompletions
+from pssnet_ros.heap import trim_heap
+from pssnet_ros.spinning import spin_until_shutdown
+rclpy.init()
+node = rclpy.create_node("request_memory_probe")
+node.create_service(SampleCompletions, "{SERVICE}", lambda request, response: response)
+node.create_timer(0.2, trim_heap)  # so that what the process freed does not count
+executor = SingleThreadedExecutor()
+executor.add_node(node)
+print("server up", flush=True)
+try:
+    spin_until_shutdown(executor)
+except KeyboardInterrupt:
+    pass
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+HUGE = (3000, 4000)  # rows, columns: 46 MiB of float32, more than the 32 MiB shared-memory segment
+MIB = 1 << 20
+
+
+def anonymous_rss_mib(pid: int) -> float:
+    """Resident MiB of the process's heap and anonymous mappings (not files, not /dev/shm segments)."""
+    total, anonymous = 0, False
+    for line in Path(f"/proc/{pid}/smaps").read_text().splitlines():
+        head = line.split()
+        if re.match(r"^[0-9a-f]+-[0-9a-f]+ ", line):
+            path = head[5] if len(head) > 5 else ""
+            anonymous = path in ("", "[heap]") or path.startswith("[anon")
+        elif anonymous and head and head[0] == "Rss:":
+            total += int(head[1])
+    return total / 1024
+
+
+def settled_rss_mib(pid: int, seconds: float = 1.5) -> float:
+    time.sleep(seconds)  # the server's trim timer runs meanwhile
+    return anonymous_rss_mib(pid)
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("profile_policy", [True, pytest.param(False, marks=pytest.mark.slow)],
+                         ids=["shipped profile", "rmw_fastrtps default"])
+def test_a_large_request_payload_is_freed_once_taken(profile_policy: bool):
+    """With the shipped profile the server's anonymous memory comes back after a 46 MiB request; with
+    rmw_fastrtps' default history memory (the slow case, which shows what the profile fixes) it stays."""
+    from pssnet_interfaces.srv import SampleCompletions
+
+    from pssnet_ros.conversions import numpy_to_image
+    from pssnet_testing.client import RosClient
+
+    domain = domain_for(8)
+    env = ros_env(domain, extra=None if profile_policy else {USE_QOS_FROM_XML: "0"})
+    assert profile_policy == (env.get(USE_QOS_FROM_XML) == "1")
+    request = SampleCompletions.Request()
+    request.depth = numpy_to_image(np.full(HUGE, 0.6, np.float32), "32FC1")
+    small = SampleCompletions.Request()
+    small.depth = numpy_to_image(np.full((480, 640), 0.6, np.float32), "32FC1")
+    with RosProcess([sys.executable, "-c", SERVER], env, name="request_memory_probe") as server:
+        server.wait_for("server up", timeout=60)
+        ros = RosClient(domain, name="request_memory_client")
+        try:
+            client = ros.service(SampleCompletions, SERVICE)
+            for _ in range(3):  # pools, arenas and the shared-memory segment of ordinary requests
+                ros.call(client, small, 30.0)
+            before = settled_rss_mib(server.pid)
+            ros.call(client, request, 60.0)
+            after_huge = settled_rss_mib(server.pid)
+            ros.call(client, small, 30.0)
+            after = settled_rss_mib(server.pid)
+        finally:
+            ros.close()
+        assert server.stop() == 0, server.output
+    growth = after - before
+    held = HUGE[0] * HUGE[1] * 4 / MIB
+    if profile_policy:
+        assert growth < held / 3, (f"{growth:.1f} MiB of the server's heap stayed after one {held:.0f} MiB request "
+                                   f"({before:.1f} -> {after_huge:.1f} -> {after:.1f} MiB)")
+    else:
+        assert growth > held * 0.8, (f"rmw_fastrtps' default kept only {growth:.1f} MiB of a {held:.0f} MiB request "
+                                     f"({before:.1f} -> {after_huge:.1f} -> {after:.1f} MiB)")
