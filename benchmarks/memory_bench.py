@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import time
 from pathlib import Path
 
@@ -30,25 +29,10 @@ from fuzz_bench import REFUSAL, REQUEST_FAMILIES, Fuzzer, rss_kib
 from pssnet_core.bench import cpu_kind
 from pssnet_testing.client import SAMPLE_SERVICE, RosClient
 from pssnet_testing.node_under_test import NodeUnderTest
+from pssnet_testing.processes import resident_mib_by_kind
 from pssnet_testing.synthetic_camera import SceneOptions, render_scene
 
 HUGE = (3000, 4000)  # rows, columns: a 12-megapixel depth image
-
-
-def memory_breakdown(pid: int) -> dict[str, float]:
-    """Resident MiB of the process by kind of mapping: "heap and anonymous", "dds shared memory" (/dev/shm),
-    "files" (libraries and other mapped files)."""
-    totals = {"heap and anonymous": 0, "dds shared memory": 0, "files": 0}
-    kind = "files"
-    for line in Path(f"/proc/{pid}/smaps").read_text().splitlines():
-        head = line.split()
-        if re.match(r"^[0-9a-f]+-[0-9a-f]+ ", line):
-            path = head[5] if len(head) > 5 else ""
-            kind = ("dds shared memory" if path.startswith("/dev/shm") else
-                    "heap and anonymous" if path in ("", "[heap]") or path.startswith("[anon") else "files")
-        elif head and head[0] == "Rss:":
-            totals[kind] += int(head[1])
-    return {k: v / 1024 for k, v in totals.items()}
 
 
 def huge_request(fuzzer: Fuzzer, stamp_ns: int):
@@ -73,7 +57,7 @@ def phase(ros: RosClient, service, requests, timeout: float) -> dict[str, int]:
 
 
 def snapshot(pid: int, label: str) -> dict[str, float]:
-    row = {"rss_mib": rss_kib(pid) / 1024, **memory_breakdown(pid)}
+    row = {"rss_mib": rss_kib(pid) / 1024, **resident_mib_by_kind(pid)}
     print(f"[memory] {label}: RSS {row['rss_mib']:.1f} MiB (" + ", ".join(
         f"{k} {v:.1f}" for k, v in row.items() if k != "rss_mib") + ")", flush=True)
     return row

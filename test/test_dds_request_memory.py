@@ -10,58 +10,28 @@ A bare server (no model) receives one such request; its anonymous memory is comp
 
 from __future__ import annotations
 
-import re
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 from test_node_helpers import domain_for
 
-from pssnet_testing.processes import USE_QOS_FROM_XML, RosProcess, ros_env
+from pssnet_testing.processes import USE_QOS_FROM_XML, RosProcess, resident_mib_by_kind, ros_env, spinning_node_script
 
 SERVICE = "/request_memory_probe"
-SERVER = f"""
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
+SERVER = spinning_node_script("request_memory_probe", f"""
 from pssnet_interfaces.srv import SampleCompletions
 from pssnet_ros.heap import trim_heap
-from pssnet_ros.spinning import spin_until_shutdown
-rclpy.init()
-node = rclpy.create_node("request_memory_probe")
 node.create_service(SampleCompletions, "{SERVICE}", lambda request, response: response)
-node.create_timer(0.2, trim_heap)  # so that what the process freed does not count
-executor = SingleThreadedExecutor()
-executor.add_node(node)
-print("server up", flush=True)
-try:
-    spin_until_shutdown(executor)
-except KeyboardInterrupt:
-    pass
-node.destroy_node()
-rclpy.try_shutdown()
-"""
+node.create_timer(0.2, trim_heap)  # so that what the process freed does not count""", "server up")
 HUGE = (3000, 4000)  # rows, columns: 46 MiB of float32, more than the 32 MiB shared-memory segment
 MIB = 1 << 20
 
 
-def anonymous_rss_mib(pid: int) -> float:
-    """Resident MiB of the process's heap and anonymous mappings (not files, not /dev/shm segments)."""
-    total, anonymous = 0, False
-    for line in Path(f"/proc/{pid}/smaps").read_text().splitlines():
-        head = line.split()
-        if re.match(r"^[0-9a-f]+-[0-9a-f]+ ", line):
-            path = head[5] if len(head) > 5 else ""
-            anonymous = path in ("", "[heap]") or path.startswith("[anon")
-        elif anonymous and head and head[0] == "Rss:":
-            total += int(head[1])
-    return total / 1024
-
-
 def settled_rss_mib(pid: int, seconds: float = 1.5) -> float:
     time.sleep(seconds)  # the server's trim timer runs meanwhile
-    return anonymous_rss_mib(pid)
+    return resident_mib_by_kind(pid)["heap and anonymous"]
 
 
 @pytest.mark.ros

@@ -21,28 +21,14 @@ from pssnet_testing.processes import (
     free_domain_id,
     ros_env,
     shm_files,
+    spinning_node_script,
     stale_shm_files,
 )
 
-PARTICIPANT = """
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
+PARTICIPANT = spinning_node_script("shm_probe", """
 from std_msgs.msg import String
-from pssnet_ros.spinning import spin_until_shutdown
-rclpy.init()
-node = rclpy.create_node("shm_probe")
 node.create_publisher(String, "probe", 10)
-node.create_subscription(String, "probe", lambda m: None, 10)
-executor = SingleThreadedExecutor()
-executor.add_node(node)
-print("participant up", flush=True)
-try:
-    spin_until_shutdown(executor)
-except KeyboardInterrupt:
-    pass
-node.destroy_node()
-rclpy.try_shutdown()
-"""
+node.create_subscription(String, "probe", lambda m: None, 10)""", "participant up")
 
 
 def test_a_domain_with_a_bound_rtps_port_is_skipped():

@@ -8,7 +8,9 @@
   concurrent test runs, demos and benchmarks on one machine never share a domain.
 - :class:`RosProcess`: a child process whose output is collected in the background; ``wait_for`` a log
   line, ``stop`` with SIGINT (then SIGTERM/SIGKILL only if it hangs), and the Fast DDS shared-memory
-  segments it created, to check that none are left behind (:func:`stale_shm_files`).
+  segments it created, to check that none are left behind (:func:`stale_shm_files`);
+  :func:`spinning_node_script`: the source of a small child node spun until SIGINT.
+- :func:`rss_mb`, :func:`resident_mib_by_kind`, :func:`cpu_seconds`: a live process's memory and CPU time.
 
 Fast DDS shared memory: every participant creates its own segments (``fastrtps_<id>``) and listens on port
 segments (``fastrtps_port<n>``), some of which (ports 7000, 7001, ...) every participant on the machine
@@ -30,7 +32,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping, MutableMapping, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -65,11 +67,20 @@ def fastdds_profile() -> Path | None:
         return None
 
 
-def _same_file(path: str, profile: Path) -> bool:
+def _set_fastdds_defaults(env: MutableMapping[str, str]) -> None:
+    """Discovery on localhost and the shipped Fast DDS profile, unless ``env`` says otherwise; the profile's
+    history memory policies read (USE_QOS_FROM_XML) only when the profile in use is the shipped one."""
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    profile = fastdds_profile()
+    if profile is None:
+        return
+    env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
     try:
-        return Path(path).resolve() == profile.resolve()
+        shipped = Path(env["FASTRTPS_DEFAULT_PROFILES_FILE"]).resolve() == profile.resolve()
     except OSError:
-        return False
+        shipped = False
+    if shipped:
+        env.setdefault(USE_QOS_FROM_XML, "1")
 
 
 def ros_env(domain_id: int, extra: Mapping[str, str] | None = None, base: Mapping[str, str] | None = None
@@ -86,12 +97,7 @@ def ros_env(domain_id: int, extra: Mapping[str, str] | None = None, base: Mappin
     env = dict(os.environ if base is None else base)
     env.pop(BOOTSTRAP_GUARD, None)
     env["ROS_DOMAIN_ID"] = str(domain_id)
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    profile = fastdds_profile()
-    if profile is not None:
-        env.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
-        if _same_file(env["FASTRTPS_DEFAULT_PROFILES_FILE"], profile):
-            env.setdefault(USE_QOS_FROM_XML, "1")
+    _set_fastdds_defaults(env)
     env["PYTHONUNBUFFERED"] = "1"
     env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
     env.update(extra or {})
@@ -100,12 +106,7 @@ def ros_env(domain_id: int, extra: Mapping[str, str] | None = None, base: Mappin
 
 def configure_this_process(domain_id: int) -> None:
     """Sets the discovery range and Fast DDS profile for ROS contexts created later in *this* process."""
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    profile = fastdds_profile()
-    if profile is not None:
-        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(profile))
-        if _same_file(os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"], profile):
-            os.environ.setdefault(USE_QOS_FROM_XML, "1")
+    _set_fastdds_defaults(os.environ)
     os.environ["ROS_DOMAIN_ID"] = str(domain_id)
 
 
@@ -377,6 +378,44 @@ def rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     raise ValueError(f"no VmRSS for process {pid}")
+
+
+def resident_mib_by_kind(pid: int) -> dict[str, float]:
+    """Resident MiB of a live process by kind of mapping (/proc/PID/smaps): "heap and anonymous" (glibc heaps and
+    anonymous memory), "dds shared memory" (/dev/shm: Fast DDS segments) and "files" (libraries, other files)."""
+    totals = {"heap and anonymous": 0, "dds shared memory": 0, "files": 0}
+    kind = "files"
+    for line in Path(f"/proc/{pid}/smaps").read_text().splitlines():
+        head = line.split()
+        if re.match(r"^[0-9a-f]+-[0-9a-f]+ ", line):
+            path = head[5] if len(head) > 5 else ""
+            kind = ("dds shared memory" if path.startswith("/dev/shm") else
+                    "heap and anonymous" if path in ("", "[heap]") or path.startswith("[anon") else "files")
+        elif head and head[0] == "Rss:":
+            totals[kind] += int(head[1])
+    return {k: v / 1024 for k, v in totals.items()}
+
+
+def spinning_node_script(node_name: str, setup: str, ready: str) -> str:
+    """Python source of a child ROS process: one node ``node`` named ``node_name``, set up by the lines ``setup``
+    (their imports included), spun until SIGINT; it prints ``ready`` just before spinning."""
+    return f"""
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from pssnet_ros.spinning import spin_until_shutdown
+rclpy.init()
+node = rclpy.create_node({node_name!r})
+{setup}
+executor = SingleThreadedExecutor()
+executor.add_node(node)
+print({ready!r}, flush=True)
+try:
+    spin_until_shutdown(executor)
+except KeyboardInterrupt:
+    pass
+node.destroy_node()
+rclpy.try_shutdown()
+"""
 
 
 def cpu_seconds(pid: int) -> float:
