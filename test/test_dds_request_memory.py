@@ -5,11 +5,14 @@ rmw_fastrtps gives a service's request reader PREALLOCATED_WITH_REALLOC history 
 payload buffer of the reader's pool at the largest request it ever held, so one refused 4000x3000 float request
 held 46 MiB of the node's heap for the rest of its life. The shipped Fast DDS profile, read with
 RMW_FASTRTPS_USE_QOS_FROM_XML=1 (set with it by ``ros_env``), gives request readers DYNAMIC memory instead.
-A bare server (no model) receives one such request; its anonymous memory is compared before and after.
+A bare server (no model) receives one such request; its anonymous memory is compared before and after. And the
+node's threads allocate from glibc's main arena, whose unused top ``malloc_trim`` returns (``use_one_arena``).
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
 import sys
 import time
 
@@ -25,7 +28,7 @@ from pssnet_interfaces.srv import SampleCompletions
 from pssnet_ros.heap import trim_heap
 node.create_service(SampleCompletions, "{SERVICE}", lambda request, response: response)
 node.create_timer(0.2, trim_heap)  # so that what the process freed does not count""", "server up")
-HUGE = (3000, 4000)  # rows, columns: 46 MiB of float32, more than the 32 MiB shared-memory segment
+HUGE = (3000, 4000)  # rows, columns: 46 MiB of float32, more than the 8 MiB shared-memory segment
 MIB = 1 << 20
 
 
@@ -75,3 +78,30 @@ def test_a_large_request_payload_is_freed_once_taken(profile_policy: bool):
     else:
         assert growth > held * 0.8, (f"rmw_fastrtps' default kept only {growth:.1f} MiB of a {held:.0f} MiB request "
                                      f"({before:.1f} -> {after_huge:.1f} -> {after:.1f} MiB)")
+
+
+ARENA_PROBE = """
+import ctypes, sys, threading
+from pssnet_ros.heap import use_one_arena
+pinned = use_one_arena() if sys.argv[1] == "one" else False
+kept = []
+threads = [threading.Thread(target=lambda: kept.append(bytearray(100_000))) for _ in range(4)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join()
+print(pinned, flush=True)
+ctypes.CDLL(None).malloc_stats()  # one "Arena N:" block per arena, on stderr
+"""
+
+
+@pytest.mark.parametrize("one", [True, False], ids=["use_one_arena", "glibc default"])
+def test_the_nodes_threads_allocate_from_the_one_arena_malloc_trim_returns_whole(one: bool):
+    """pssnet_ros.heap.use_one_arena (called by the node at start): threads started afterwards allocate from the main
+    arena, whose unused top malloc_trim returns; by default a thread gets an arena of its own, whose top it does not."""
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    done = subprocess.run([sys.executable, "-c", ARENA_PROBE, "one" if one else "default"], env=env,
+                          capture_output=True, text=True, timeout=60, check=True)
+    arenas = sum(line.startswith("Arena ") for line in done.stderr.splitlines())
+    assert done.stdout.split() == [str(one)]
+    assert (arenas == 1) if one else (arenas > 1), done.stderr

@@ -81,7 +81,7 @@ from pssnet_ros.completion_io import (
     stamp_ns,
 )
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
-from pssnet_ros.heap import trim_heap
+from pssnet_ros.heap import trim_heap, use_one_arena
 from pssnet_ros.newest_slot import NewestSlot
 from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, SPECS, check_values, markdown_table, pipeline_config
 from pssnet_ros.rclpy_fixes import refuse_unknown_transitions
@@ -730,9 +730,10 @@ def main(args: Sequence[str] | None = None) -> int:
     if any(a in ("-h", "--help") for a in plain_args):
         print(usage())
         return 0
-    # A predecessor killed with -9 leaves its Fast DDS shared memory (32 MiB per participant): remove what
+    # A predecessor killed with -9 leaves its Fast DDS shared memory (8 MiB per participant): remove what
     # belongs to dead processes only, before this process's own participant exists.
     shm = clean_stale_shm()
+    use_one_arena()  # before DDS, the executor and torch start threads: see pssnet_ros.heap
     faulthandler.register(signal.SIGUSR1)  # `kill -USR1 PID` prints every thread's stack: a hung node explains itself
     rclpy.init(args=argv)
     node: CompletionNode | None = None

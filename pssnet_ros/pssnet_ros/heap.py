@@ -3,24 +3,34 @@
 glibc's malloc keeps memory freed by the process in its arenas (one per thread that allocated) for reuse,
 and returns it only from the top of each heap: a burst of large or varied requests (image buffers, the
 checked sampler's proposals) leaves the node's RSS at its high-water mark. ``malloc_trim(0)`` releases the free
-pages of every arena. No Python library exposes it, hence ctypes.
+pages of every arena, but the unused top of a thread's own arena only in the main arena. That top may keep up to
+twice glibc's mmap threshold, which rises with the largest buffer freed (up to 32 MiB): after a 12-megapixel
+request each executor thread's arena kept up to 64 MiB, 30-50 MiB more resident memory that no trim returned
+(RELIABILITY.md). So the node serves every thread from the main arena (:func:`use_one_arena`, called before its
+threads start); its threads allocate large buffers, not many small ones, so they hardly contend. No Python library
+exposes either call, hence ctypes.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
+
+#: mallopt's parameter number of the arena limit (glibc's malloc.h)
+M_ARENA_MAX = -8
 
 
-def _malloc_trim() -> ctypes._CFuncPtr | None:
+def _libc_function(name: str) -> ctypes._CFuncPtr | None:
     path = ctypes.util.find_library("c")
     try:
-        return ctypes.CDLL(path).malloc_trim if path else None
-    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to trim this way
+        return getattr(ctypes.CDLL(path), name) if path else None
+    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to tune this way
         return None
 
 
-_TRIM = _malloc_trim()
+_TRIM = _libc_function("malloc_trim")
+_MALLOPT = _libc_function("mallopt")
 
 
 def trim_heap() -> bool:
@@ -30,3 +40,12 @@ def trim_heap() -> bool:
         return False
     _TRIM(0)
     return True
+
+
+def use_one_arena() -> bool:
+    """Serves every thread started from now on from glibc's main arena, the one whose top ``malloc_trim`` returns
+    (a ``MALLOC_ARENA_MAX`` in the environment wins: the caller's choice); False where the C library has no
+    ``mallopt`` or refuses."""
+    if _MALLOPT is None or "MALLOC_ARENA_MAX" in os.environ:
+        return False
+    return bool(_MALLOPT(M_ARENA_MAX, 1))

@@ -60,7 +60,7 @@ def mapped_inodes() -> set[int]:
 
 
 
-#: Participant segments (one per participant, ``segment_size`` each: 32 MiB with the shipped profile) and
+#: Participant segments (one per participant, ``segment_size`` each: 8 MiB with the shipped profile) and
 #: ports (~50 kB each) of Fast DDS 2.x (``fastrtps_``, ROS 2 Jazzy) and 3.x (``fastdds_``).
 _SEGMENT_NAME = re.compile(r"^(fastrtps|fastdds)_[0-9a-f]{16}$")
 _PORT_NAME = re.compile(r"^(fastrtps|fastdds)_port\d+$")
