@@ -185,8 +185,12 @@ def test_mug_grasps_through_the_hidden_handle_region_score_below_body_grasps(mug
     assert grasps.scores[0] == 1.0 and body[0]
     assert not np.any(grasps.holds & hit)  # a grasp never holds for a completion whose handle it runs into
     assert grasps.scores[through].max() < grasps.scores[0]
-    assert grasps.scores[through].mean() < grasps.scores[body].mean() - 0.2
-    assert grasps.scores[handle_only].mean() < grasps.scores[body].mean() - 0.2
+    # Against the body grasps that hold at all: chords of the cup, which the pads would push out of the hand
+    # (outside the friction cone), hold for no completion and say nothing about the handle.
+    held_body = body & (grasps.scores > 0)
+    assert held_body.sum() >= 10
+    assert grasps.scores[through].mean() < grasps.scores[held_body].mean() - 0.2
+    assert grasps.scores[handle_only].mean() < grasps.scores[held_body].mean() - 0.2
 
 
 # ------------------------------------------------------------------------------------------ (c)

@@ -23,8 +23,13 @@ How a grasp is judged against one completion (:func:`score_grasps`, module ``sco
 for completion s when
   1. its opening fits the gripper (``width <= max_opening``),
   2. no part of the gripper reaches below the support plane (analytic, from the boxes' corners),
-  3. the closing region contains at least ``min_object_width`` of object along the closing axis, and
-  4. neither finger nor the palm overlaps an occupied voxel of s.
+  3. the closing region contains at least ``min_object_width`` of object along the closing axis,
+  4. neither finger nor the palm overlaps an occupied voxel of s, and
+  5. where the pads hold ``MIN_NORMAL_EXTENT`` (6) voxels or more of object across, each pad meets a surface within
+     its friction cone: the push along the closing axis lies within ``atan(friction)`` of the surface's inward
+     normal, the sum over the pad's touching cells of the gradient of the completion smoothed by one voxel. A pinch
+     of a body's chord or of a box across its edges fails it (the pads push the object out of the hand, or turn
+     it); handles, rims and wires, too thin for their voxel normals to mean anything, are not judged by it.
 Volumes are tested on lattices of sample points (spacing at most one voxel along every axis, faces
 included) transformed into the grid; a part "overlaps" s when any of its sample points falls in an
 occupied voxel of s, i.e. the part overlaps the occupied voxel cubes to within the lattice resolution.
@@ -57,8 +62,7 @@ tolerates pose error. Balance is the mean over the same completions of ``1 - lev
 1]), lever = the arm of the completion's weight (at its centroid) about the grasp, the part of the moment that lies
 across the closing axis: two pads resist a moment about the closing axis by friction over both pads, but one across
 it only by pressing unevenly, which a small contact cannot (in the grasp trials every grasp pinching a mug's handle
-from above and below slipped, 9 of 9, where pinches across the handle held). Contact normals are not checked
-otherwise (voxel normals are coarse).
+from above and below slipped, 9 of 9, where pinches across the handle held).
 
 Candidates (:func:`generate_candidates`, module ``candidates``). Anchors are the surface voxels of the union
 of the completions plus the observed points, drawn with a bias towards thin parts (``thin_anchor_bias``: a

@@ -18,6 +18,11 @@ from pssnet_core.grasps.config import VoxelDims
 _BLOCK_POINTS = 1 << 17
 
 
+#: Gaussian smoothing (voxels) of a completion before its gradient is read as surface normals: enough to turn a
+#: voxel staircase into the slope it approximates, small against a handle's section (1-2 voxels at 32^3).
+NORMAL_SMOOTHING = 1.0
+
+
 class PackedGrids:
     """S occupancy grids packed into bit words: bit ``s % 64`` of word ``s // 64`` is completion s.
 
@@ -52,6 +57,16 @@ class PackedGrids:
         sums = np.stack([occupancy.sum(axis=tuple(a for a in (1, 2, 3) if a != axis)) @ centres
                          for axis in (1, 2, 3)], axis=1)
         return sums / np.maximum(counts, 1)[:, None], counts
+
+    @functools.cached_property
+    def inward_normals(self) -> np.ndarray:
+        """(S, N, N, N, 3) float32: the gradient of each completion's occupancy smoothed by a Gaussian of
+        :data:`NORMAL_SMOOTHING` voxels, which points into the object across its surface (an unnormalised inward
+        normal; zero far from any surface)."""
+        from scipy.ndimage import gaussian_filter
+
+        smooth = gaussian_filter(self._occupancy.astype(np.float32), (0.0, *(NORMAL_SMOOTHING,) * 3), mode="constant")
+        return np.stack(np.gradient(smooth, axis=(1, 2, 3)), axis=-1)
 
     def unpack(self, words: np.ndarray) -> np.ndarray:
         """Words (W, ...) -> (..., S) bool."""
