@@ -3,12 +3,12 @@
 glibc's malloc keeps memory freed by the process in its arenas (one per thread that allocated) for reuse,
 and returns it only from the top of each heap: a burst of large or varied requests (image buffers, the
 checked sampler's proposals) leaves the node's RSS at its high-water mark. ``malloc_trim(0)`` releases the free
-pages of every arena, but the unused top of a thread's own arena only in the main arena. That top may keep up to
-twice glibc's mmap threshold, which rises with the largest buffer freed (up to 32 MiB): after a 12-megapixel
-request each executor thread's arena kept up to 64 MiB, 30-50 MiB more resident memory that no trim returned
-(RELIABILITY.md). So the node serves every thread from the main arena (:func:`use_one_arena`, called before its
-threads start); its threads allocate large buffers, not many small ones, so they hardly contend. No Python library
-exposes either call, hence ctypes.
+pages of every arena, and the unused top of the main arena alone: a thread's own arena keeps its top up to glibc's
+trim threshold, twice the mmap threshold, which rises with the largest buffer freed (up to 32 MiB). After
+12-megapixel requests the executor threads' arenas kept 30-50 MiB that no trim returned (RELIABILITY.md). So the
+node serves every thread from the main arena (:func:`use_one_arena`, called before its threads start); its threads
+allocate large buffers, not many small ones, so they hardly contend. No Python library exposes either call, hence
+ctypes.
 """
 
 from __future__ import annotations

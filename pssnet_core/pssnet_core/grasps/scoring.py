@@ -135,6 +135,7 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
         coverage += bits.count(touching) / (nx * nz)
         patches.append(bits.unpack(touching) & has[None])
     coverage = np.where(has, coverage / 2.0, 0.0)
+
     # Fingers and palm.
     finger_hit = np.zeros((k, s), dtype=bool)
     for sign in (-1.0, 1.0):
