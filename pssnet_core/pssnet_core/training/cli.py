@@ -11,7 +11,7 @@ from pssnet_core.models.base import PRECISIONS
 from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, read_checkpoint
 from pssnet_core.models.config import ConfigError
 from pssnet_core.models.registry import model_names
-from pssnet_core.training.distributed import DistributedError
+from pssnet_core.training.distributed import DistributedError, StopFlag
 from pssnet_core.training.trainer import BEST_METRICS, TrainConfig, Trainer, TrainingError
 
 
@@ -145,10 +145,6 @@ def _posterior(args: argparse.Namespace) -> int:
     return 0
 
 
-def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def _train(args: argparse.Namespace) -> int:
     try:
         cfg = TrainConfig(model=args.model, data=args.data, out=args.out, val_data=args.val_data,
@@ -160,13 +156,10 @@ def _train(args: argparse.Namespace) -> int:
                           val_num_samples=args.val_num_samples, best_metric=args.best_metric,
                           log_every=args.log_every, model_config=args.model_config,
                           half_checkpoint=args.half_checkpoint, progress=not args.no_progress)
-        # SIGTERM (kill, a job scheduler, a background job whose SIGINT the shell ignores) stops like Ctrl-C:
-        # last.pt is saved and --resume continues.
-        previous = signal.signal(signal.SIGTERM, _interrupt)
-        try:
-            summary = Trainer(cfg).fit()
-        finally:
-            signal.signal(signal.SIGTERM, previous)
+        # SIGTERM (kill, a job scheduler, a background job whose SIGINT the shell ignores) stops like Ctrl-C, at
+        # the next step boundary: last.pt is saved and --resume continues.
+        with StopFlag((signal.SIGTERM,)) as stop:
+            summary = Trainer(cfg).fit(stop)
     except (TrainingError, DatasetError, ConfigError, CheckpointError, DistributedError) as error:
         print(f"pssnet train: error: {error}", file=sys.stderr)
         return 2

@@ -161,19 +161,23 @@ def session(device: str) -> Iterator[DistributedRun]:
 
 
 class StopFlag:
-    """SIGINT and SIGTERM set a flag instead of interrupting (a distributed run): ranks stop together.
+    """``signals`` (default SIGINT and SIGTERM) set a flag instead of interrupting; the training loop stops at the
+    next step boundary.
 
-    Raising KeyboardInterrupt at once, as one process does, would leave the other ranks waiting in a collective;
+    A distributed run: raising KeyboardInterrupt at once would leave the other ranks waiting in a collective;
     torchrun forwards a signal to every worker (and kills them 30 s later), so each sees the flag at the next
     step. A second signal only sets the flag again: torchrun's forwarded copy must not cut the saving short.
+    ``pssnet train`` takes SIGTERM this way in every run: raised at once, the interrupt can land inside an import or
+    a file write and surface as another error (matplotlib's import during a validation failed with ImportError).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
         self._event = threading.Event()
+        self._signals = signals
         self._previous: dict[int, object] = {}
 
     def __enter__(self) -> StopFlag:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in self._signals:
             self._previous[sig] = signal.signal(sig, self._handle)
         return self
 

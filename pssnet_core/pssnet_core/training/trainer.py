@@ -308,15 +308,17 @@ class Trainer:
         return distributed.rank_batches(self.train_reader, batch_size, seed, run.rank, run.world_size, keys)
 
     # -------------------------------------------------------------------------------------------- run
-    def fit(self) -> dict[str, Any]:
+    def fit(self, stop: distributed.StopFlag | None = None) -> dict[str, Any]:
         """Trains; returns the summary also written to ``summary.json``.
 
         Under torchrun (WORLD_SIZE > 1) this process is one rank of a data-parallel run
-        (:mod:`pssnet_core.training.distributed`); only rank 0 writes to ``out``.
+        (:mod:`pssnet_core.training.distributed`); only rank 0 writes to ``out``. ``stop``: a flag whose signal
+        ends a single-process run at the next step boundary (last.pt saved, KeyboardInterrupt raised); a
+        distributed run sets its own.
         """
         with distributed.session(self.cfg.device) as run:
             if not run.enabled:
-                return self._fit(run, None)
+                return self._fit(run, stop)
             self.ctx = resolve_context(str(run.device), self.cfg.precision)
             with distributed.StopFlag() as stop:
                 return self._fit(run, stop)
