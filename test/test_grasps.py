@@ -441,7 +441,6 @@ def test_a_fingertip_pinch_of_a_round_bodys_near_side_is_squeezed_out_a_flat_one
     assert flat_pinch.contains[0, 0] and not flat_pinch.squeezed_out[0, 0] and flat_pinch.holds[0, 0]
 
 
-
 @pytest.mark.parametrize(("yaw_deg", "outside"), [(0.0, False), (20.0, False), (30.0, True), (35.0, True)])
 def test_pads_outside_the_friction_cone_squeeze_a_body_out(yaw_deg: float, outside: bool):
     # A wall 8 voxels thick along y, pinched from above with the closing axis turned `yaw_deg` from its normal: the
@@ -456,6 +455,7 @@ def test_pads_outside_the_friction_cone_squeeze_a_body_out(yaw_deg: float, outsi
     checks = check_grasps(candidates, occ, identity_pose(), 2.0, CONFIG)
     assert checks.squeezed_out[0, 0] == outside
     assert checks.holds[0, 0] != outside
+
 
 def _mug_like(body: bool = True) -> np.ndarray:
     """A vertical rod 2 x 2 voxels thick, 14 tall (a handle), and, 10 voxels away along -x, a heavy block."""
