@@ -357,6 +357,27 @@ def test_thin_parts_get_more_candidates_with_the_thin_anchor_bias():
     assert share_on_bar(1.0) > 1.5 * share_on_bar(0.0)
 
 
+def test_a_filter_that_rejects_most_draws_gets_more_rounds_of_draws():
+    # Like a mug in a cupboard: only approaches from the +x side pass the filter, a small share of the draws.
+    occ, pose = handle_behind_body(), identity_pose()
+
+    def from_plus_x(c: GraspCandidates) -> np.ndarray:
+        return c.rotations[:, 0, 2] < -0.5
+
+    def candidates(rounds: int, allowed=from_plus_x) -> GraspCandidates:
+        config = GraspConfig(max_candidates=150, oversample=2.0, draw_rounds=rounds)
+        return generate_candidates(occ, pose, config=config, support_z=2.0, allowed=allowed)
+
+    one, many = candidates(1), candidates(8)
+    assert np.all(many.rotations[:, 0, 2] < -0.5)
+    assert len(many) >= 4 * len(one) > 0
+    # Without a filter, or one that takes nothing, one round is drawn whatever draw_rounds says.
+    np.testing.assert_array_equal(candidates(1, None).origins, candidates(8, None).origins)
+    np.testing.assert_array_equal(candidates(1, None).origins, candidates(8, lambda c: np.ones(len(c), bool)).origins)
+    with pytest.raises(GraspError, match="draw_rounds"):
+        GraspConfig(draw_rounds=0)
+
+
 def test_max_candidates_bounds_the_count():
     grid = generate_candidates(bar(), identity_pose(), config=GraspConfig(max_candidates=7), support_z=2.0)
     assert 1 <= len(grid) <= 7

@@ -80,7 +80,9 @@ object along the closing axis through the anchor is measured; the completions wh
 widest completion's extent when the runs share a side), and the grasp is re-centred on it. A completion whose
 run does not fit is not held by this grasp; a run stops at the first empty slice, so a mug's rim is pinched
 wall by wall rather than across the whole cup. Near-duplicates are dropped; at most ``max_candidates`` are
-kept (a seeded random subset). Deterministic given the seed.
+kept (a seeded random subset). A caller's ``allowed`` filter (approaches clear of known clutter) is applied before
+that subset, and pairs are drawn again, up to ``draw_rounds`` rounds, until ``max_candidates`` pass it.
+Deterministic given the seed.
 
 Support plane: the grid is gravity aligned, so the plane is the horizontal plane ``z = support_z`` (grid
 voxel units). Unless given, :func:`estimate_support_height` takes the lower of (a) the lowest observed point

@@ -101,7 +101,8 @@ def generate_candidates(occupancy: np.ndarray, pose: GridPose, points: np.ndarra
         support_z: support-plane height in grid voxels; None = :func:`estimate_support_height`.
         known_occupied: (N, N, N) observed voxels, for the support plane when ``points`` is None.
         allowed: candidates (grid coordinates, final widths) -> (K,) bool, the ones the surroundings allow
-            (e.g. approaches clear of known clutter); applied before the ``max_candidates`` subset.
+            (e.g. approaches clear of known clutter); applied before the ``max_candidates`` subset, drawing
+            up to ``config.draw_rounds`` rounds of raw pairs until that many pass.
 
     Returns:
         At most ``config.max_candidates`` candidates in grid coordinates, in a deterministic order.
@@ -125,7 +126,6 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
         union: (N, N, N) bool, voxels occupied in any completion.
         pose, points, config, support_z, allowed: as :func:`generate_candidates` (points checked, or None).
     """
-    dims = VoxelDims.of(config, pose.voxel_size)
     points_grid = pose.camera_to_grid(points) if points is not None else None
     anchors = _anchors(union, points_grid)
     rotations_all, kinds_all = _orientations(config.top_yaws, config.side_yaws, tuple(config.side_rolls),
@@ -137,11 +137,47 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     raw = int(min(total, math.ceil(config.oversample * config.max_candidates)))
     if raw == total:
         anchor_id, orient_id = np.divmod(np.arange(total), len(rotations_all))
+        (origins, rot, widths, orient_id), _ = _placed(bits, union, anchors[anchor_id], orient_id, rotations_all,
+                                                       kinds_all, pose, config, support_z, allowed)
     else:
-        anchor_id = rng.choice(len(anchors), size=raw, p=_anchor_weights(union, anchors, config.thin_anchor_bias))
-        orient_id = rng.integers(len(rotations_all), size=raw)
-        anchor_id, orient_id = np.divmod(np.unique(anchor_id * len(rotations_all) + orient_id), len(rotations_all))
-    p = anchors[anchor_id]
+        anchor_p = _anchor_weights(union, anchors, config.thin_anchor_bias)
+        found: list[tuple[np.ndarray, ...]] = []
+        # Where ``allowed`` rejects candidates (a hand in a cupboard may come in from one side only), draw again
+        # until max_candidates distinct ones pass: a filter must not leave the planner the handful of candidates
+        # it happened to draw first (in the grasp trials' cupboard 19 of 500 remained, and the true shape's best
+        # handle pinch was often not among them). A round the filter takes nothing from ends the draws.
+        for _ in range(config.draw_rounds if allowed is not None else 1):
+            anchor_id = rng.choice(len(anchors), size=raw, p=anchor_p)
+            orient_id = rng.integers(len(rotations_all), size=raw)
+            anchor_id, orient_id = np.divmod(np.unique(anchor_id * len(rotations_all) + orient_id),
+                                             len(rotations_all))
+            placed, rejected = _placed(bits, union, anchors[anchor_id], orient_id, rotations_all, kinds_all, pose,
+                                       config, support_z, allowed)
+            found.append(placed)
+            origins, rot, widths, orient_id = (np.concatenate(parts) for parts in zip(*found, strict=True))
+            if not rejected or len(_distinct(origins, orient_id)) >= config.max_candidates:
+                break
+
+    # 3. Drop near-duplicates (same orientation, origin within half a voxel), keep a seeded subset.
+    index = _distinct(origins, orient_id)
+    if len(index) > config.max_candidates:
+        index = np.sort(rng.choice(index, size=config.max_candidates, replace=False))
+    return GraspCandidates(origins[index], rot[index], widths[index], kinds_all[orient_id[index]])
+
+
+def _distinct(origins: np.ndarray, orient_id: np.ndarray) -> np.ndarray:
+    """Indices of the first of each group of near-duplicates (same orientation, origin within half a voxel), sorted."""
+    key = np.concatenate([orient_id[:, None], np.round(origins * 2.0).astype(np.int64)], axis=1)
+    _, first_index = np.unique(key, axis=0, return_index=True)
+    return np.sort(first_index)
+
+
+def _placed(bits: PackedGrids, union: np.ndarray, p: np.ndarray, orient_id: np.ndarray, rotations_all: np.ndarray,
+            kinds_all: np.ndarray, pose: GridPose, config: GraspConfig, support_z: float,
+            allowed: Callable[[GraspCandidates], np.ndarray] | None) -> tuple[tuple[np.ndarray, ...], int]:
+    """Anchors ``p`` (K, 3) with orientations ``orient_id`` -> the grasps placed on them that fit and ``allowed``
+    accepts (origins, rotations, widths, orientation ids), and how many fitting ones ``allowed`` rejected."""
+    dims = VoxelDims.of(config, pose.voxel_size)
     rot = rotations_all[orient_id]
     approach = rot[:, :, 2]
 
@@ -197,14 +233,7 @@ def candidates_from_packed(bits: PackedGrids, union: np.ndarray, pose: GridPose,
     ok &= widths <= wmax + 1e-9
     origins = origins + (0.5 * (ys[lo_u] + ys[hi_u]))[:, None] * rot[:, :, 1]
     origins, rot, widths, orient_id = origins[ok], rot[ok], widths[ok], orient_id[ok]
-    if allowed is not None:
-        keep = np.asarray(allowed(GraspCandidates(origins, rot, widths, kinds_all[orient_id])), dtype=bool)
-        origins, rot, widths, orient_id = origins[keep], rot[keep], widths[keep], orient_id[keep]
-
-    # 3. Drop near-duplicates (same orientation, origin within half a voxel), keep a seeded subset.
-    key = np.concatenate([orient_id[:, None], np.round(origins * 2.0).astype(np.int64)], axis=1)
-    _, first_index = np.unique(key, axis=0, return_index=True)
-    index = np.sort(first_index)
-    if len(index) > config.max_candidates:
-        index = np.sort(rng.choice(index, size=config.max_candidates, replace=False))
-    return GraspCandidates(origins[index], rot[index], widths[index], kinds_all[orient_id[index]])
+    if allowed is None:
+        return (origins, rot, widths, orient_id), 0
+    keep = np.asarray(allowed(GraspCandidates(origins, rot, widths, kinds_all[orient_id])), dtype=bool)
+    return (origins[keep], rot[keep], widths[keep], orient_id[keep]), int(np.count_nonzero(~keep))

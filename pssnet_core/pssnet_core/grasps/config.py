@@ -89,6 +89,9 @@ class GraspConfig:
         clearance: free space left between each finger pad and the widest completion (metres).
         plane_clearance: every gripper part stays at least this far above the support plane (metres).
         oversample: raw (anchor, orientation) pairs generated per kept candidate, before de-duplication.
+        draw_rounds: with an ``allowed`` filter (e.g. approaches clear of known clutter), up to this many rounds of
+            ``oversample x max_candidates`` raw pairs are drawn until ``max_candidates`` distinct candidates pass
+            it or a round loses none to it; without one, one round.
         friction: Coulomb friction coefficient between the finger pads and the object, for the weight check (0.5:
             the usual conservative value for rubber pads on ceramic, plastic or cardboard).
         object_density: density assumed for every completion's voxels when the weight check turns volume into
@@ -116,6 +119,7 @@ class GraspConfig:
     clearance: float = 0.005
     plane_clearance: float = 0.0
     oversample: float = 3.0
+    draw_rounds: int = 8
     friction: float = 0.5
     object_density: float = 1000.0
     rank_by: str = "expected_grip"
@@ -124,7 +128,7 @@ class GraspConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.gripper, GripperConfig):
             raise GraspError(f"gripper must be a GripperConfig, got {type(self.gripper).__name__}")
-        for name in ("max_candidates", "top_yaws", "side_yaws", "seed"):
+        for name in ("max_candidates", "top_yaws", "side_yaws", "draw_rounds", "seed"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
                 raise GraspError(f"{name} must be an integer, got {value!r}")
@@ -153,6 +157,8 @@ class GraspConfig:
             raise GraspError(f"plane_clearance must be in [0, 0.1] m, got {self.plane_clearance}")
         if not 1.0 <= self.oversample <= 20.0:
             raise GraspError(f"oversample must be in [1, 20], got {self.oversample}")
+        if not 1 <= self.draw_rounds <= 100:
+            raise GraspError(f"draw_rounds must be in [1, 100], got {self.draw_rounds}")
         if isinstance(self.friction, bool) or not 0.05 <= float(self.friction) <= 2.0:
             raise GraspError(f"friction must be in [0.05, 2], got {self.friction!r}")
         if isinstance(self.object_density, bool) or not 10.0 <= float(self.object_density) <= 25000.0:
