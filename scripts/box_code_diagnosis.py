@@ -7,9 +7,10 @@ and measures the handle of each decoded shape (pssnet_core.evaluation.handles):
    rest of the latent at the posterior mean -> does the decoder draw the handle where the box says?
 2. samples of the model's box posterior (20 per view) -> how often is there a handle at all?
 3. those samples' boxes snapped to the nearest rigid cuboid (flow inverse, least-squares box, flow again).
-4. the decoder's reach: the flow codes of the mug turned to every ``--reach-step`` degrees all round, rest of the
-   latent at the posterior mean, by how far the box puts the handle from straight behind the mug (seen from the
-   camera) -> where does the decoder stop drawing the handle where the box says?
+4. the decoder's reach: the flow codes of the mug turned to every ``--reach-step`` degrees all round, by how far
+   the box puts the handle from straight behind the mug (seen from the camera), with the rest of the latent at the
+   posterior mean, halfway to the prior's mean, and at the prior's mean (0) -> where does the decoder stop drawing
+   the handle where the box says, and is it the decoder or the rest of the latent that stops it?
 
 Needs a training checkpoint (the flow embeds boxes; exports drop it). Usage:
     .venv/bin/python scripts/box_code_diagnosis.py --checkpoint runs/pssnet32_large/best.pt --views 24
@@ -31,6 +32,8 @@ from pssnet_core.shapes import shape_of
 
 #: lower edges of the reach measure's bands of |azimuth from straight behind| (degrees)
 REACH_BANDS = (0, 30, 60, 90, 120, 150)
+#: the reach measure's rests of the latent: the posterior mean scaled by this towards the prior's mean (0)
+REACH_RESTS = {"the posterior mean": 1.0, "half the posterior mean": 0.5, "the prior mean": 0.0}
 #: corner signs in Shape.box_corners order (binary counting, x fastest)
 SIGNS = np.array([[(i & 1) * 2 - 1, ((i >> 1) & 1) * 2 - 1, ((i >> 2) & 1) * 2 - 1] for i in range(8)], float)
 
@@ -72,7 +75,7 @@ def main() -> None:
     k = model.box_dim
     rates: dict[str, list[float]] = {"allowed boxes": [], "posterior samples": [], "snapped samples": []}
     errors: list[float] = []
-    reach: dict[int, list[tuple[bool, float]]] = {band: [] for band in REACH_BANDS}
+    reach = {rest: {band: [] for band in REACH_BANDS} for rest in REACH_RESTS}
     for view in views:
         shape = shape_of(view.identity)
         arc = plausible_handle_arc(view, view.depth_view, mug_parts(shape)).arc(0.01)
@@ -106,25 +109,30 @@ def main() -> None:
             boxes = np.stack([box_in_grid(shape, turned(view.object_pose, a), view.grid_pose, np.eye(4))
                               for a in around])
             codes = model.embed_box(model.normalise_box(torch.from_numpy(boxes)))
-            got = decode_handles(model, torch.cat([codes, mu[:, k:].expand(len(codes), -1)], 1), view, geometry)
-            for wanted_deg, got_deg in zip(around, got, strict=True):
-                away = abs(float(circular_difference_deg(np.array([wanted_deg]), np.array([behind]))[0]))
-                band = max(b for b in REACH_BANDS if away >= b)
-                drawn = bool(np.isfinite(got_deg))
-                error = abs(float(circular_difference_deg(np.array([got_deg]), np.array([wanted_deg]))[0])) \
-                    if drawn else float("nan")
-                reach[band].append((drawn, error))
+            for rest, scale in REACH_RESTS.items():
+                z = torch.cat([codes, scale * mu[:, k:].expand(len(codes), -1)], 1)
+                got = decode_handles(model, z, view, geometry)
+                for wanted_deg, got_deg in zip(around, got, strict=True):
+                    away = abs(float(circular_difference_deg(np.array([wanted_deg]), np.array([behind]))[0]))
+                    band = max(b for b in REACH_BANDS if away >= b)
+                    drawn = bool(np.isfinite(got_deg))
+                    error = abs(float(circular_difference_deg(np.array([got_deg]), np.array([wanted_deg]))[0])) \
+                        if drawn else float("nan")
+                    reach[rest][band].append((drawn, error))
     print(f"{len(rates['allowed boxes'])} hidden-handle views with an arc of 3 azimuths or more")
     for name, values in rates.items():
         print(f"{name:>18}: a handle in {100 * np.mean(values):.0f} % of decoded shapes")
     print(f"allowed boxes: handle {np.mean(errors):.1f} deg (mean) from the azimuth the box was turned to")
     print("reach: box codes of the mug turned all round; angle of the box's handle from straight behind the mug")
-    for band, entries in reach.items():
-        drawn = [d for d, _ in entries]
-        errs = [e for d, e in entries if d]
-        print(f"  {band:>3}-{band + 30 if band < 150 else 180:>3} deg: {len(entries):>4} decodes, a handle in "
-              f"{100 * np.mean(drawn):.0f} %, {np.median(errs) if errs else float('nan'):.1f} deg (median) from "
-              f"where the box puts it, within 30 deg in {100 * np.mean([e <= 30 for e in errs]) if errs else 0:.0f} %")
+    for rest, bands in reach.items():
+        print(f" rest of the latent at {rest}:")
+        for band, entries in bands.items():
+            drawn = [d for d, _ in entries]
+            errs = [e for d, e in entries if d]
+            print(f"  {band:>3}-{band + 30 if band < 150 else 180:>3} deg: {len(entries):>4} decodes, a handle in "
+                  f"{100 * np.mean(drawn):.0f} %, {np.median(errs) if errs else float('nan'):.1f} deg (median) "
+                  f"from where the box puts it, within 30 deg in "
+                  f"{100 * np.mean([e <= 30 for e in errs]) if errs else 0:.0f} %")
 
 
 if __name__ == "__main__":
