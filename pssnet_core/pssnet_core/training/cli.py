@@ -44,8 +44,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init-from", default=None, metavar="CHECKPOINT",
-                   help="warm start a new run: from another run's last.pt (weights + optimiser states) or from an "
-                        "inference-only export such as the shipped model (weights; the flow is pre-trained)")
+                   help="warm start a new run: from another run's last.pt (weights + optimiser states) or best.pt "
+                        "(weights), both keeping PSSNet's flow, which their decoder was trained against (no flow "
+                        "pre-training); or from an inference-only export such as the shipped model (weights; it "
+                        "has no flow, so a new one is pre-trained)")
     p.add_argument("--val-every", type=int, default=0, help="validate every N steps (0: every epoch)")
     p.add_argument("--val-max-samples", type=int, default=512)
     p.add_argument("--val-slice", type=int, default=16, help="inputs for the quick best-accuracy")

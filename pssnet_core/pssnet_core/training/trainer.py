@@ -71,10 +71,11 @@ class TrainConfig:
         seed: seeds weights, noise and shuffling.
         resume: continue from ``out/last.pt``.
         init_from: warm start: a new run (step 0, fresh logs, fresh best) whose weights come from this
-            checkpoint, e.g. to fine-tune on rebuilt data. From a training checkpoint (another run's last.pt)
-            the optimiser states come too and the flow is not pre-trained again; from an inference-only export
-            (the shipped model) only the weights come, and the flow it lacks is pre-trained. The model config
-            is the checkpoint's; ``model_config`` must be unset.
+            checkpoint, e.g. to fine-tune on rebuilt data. A checkpoint that carries the training-only modules
+            (another run's last.pt or best.pt) keeps its PSSNet flow, which its decoder was trained against: the
+            flow is not pre-trained again; last.pt also brings its optimiser states. An inference-only export (the
+            shipped model) brings its weights only, and the flow it lacks is pre-trained. The model config is the
+            checkpoint's; ``model_config`` must be unset.
         val_every: validate every this many steps; 0 = at the end of every epoch.
         val_max_samples: validation loss and IoU on at most this many validation samples.
         val_slice: inputs used for the quick best-accuracy.
@@ -368,13 +369,13 @@ class Trainer:
                 model, config, extra = load_checkpoint(cfg.init_from)
                 if config.model != cfg.model:
                     raise TrainingError(f"{cfg.init_from} holds a {config.model!r} model, not {cfg.model!r}")
-                # A training checkpoint (last.pt) brings its optimiser states; an inference-only export (e.g.
-                # the shipped model) brings weights only: fresh optimisers, and its dropped training-only
-                # modules (PSSNet's flow) are pre-trained again below.
-                weights_only = bool(extra.get("inference_only")) or "optimizers" not in extra
-                opt_states = None if weights_only else extra["optimizers"]
+                # A training checkpoint (last.pt, best.pt) carries the training-only modules: PSSNet's flow, which
+                # its decoder was trained against, is kept (pre-training a new one would change every box code the
+                # decoder reads); last.pt also brings its optimiser states. An inference-only export (e.g. the
+                # shipped model) brings weights only: fresh optimisers, and the flow it dropped is pre-trained below.
+                opt_states = extra.get("optimizers")
                 state["init_from"] = str(cfg.init_from)
-                state["init_weights_only"] = weights_only
+                state["init_pretrain"] = bool(extra.get("inference_only"))
             else:
                 config = self._model_config()
                 model = get_model_class(config.model)(config)
@@ -423,7 +424,7 @@ class Trainer:
                     opt.load_state_dict(opt_states[name])
 
         fresh_run = state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0
-        if fresh_run and (not cfg.init_from or state.get("init_weights_only")):
+        if fresh_run and (not cfg.init_from or state.get("init_pretrain")):
             t0 = time.perf_counter()
             pre = model.pretrain(self._box_source(run), ctx)
             run.average_buffers(model)
