@@ -213,6 +213,25 @@ def test_init_from_starts_a_new_run_from_another_runs_weights(tmp_path, dataset)
                    str(tmp_path / "a" / "last.pt"), *common) == 2
 
 
+def test_init_from_best_pt_keeps_the_flow_its_decoder_was_trained_against(tmp_path, dataset):
+    cfg = _write_tiny_config(tmp_path / "tiny.yaml", "pssnet")
+    assert run_cli("train", "--model", "pssnet", "--out", str(tmp_path / "a"), "--model-config", cfg,
+                   "--epochs", "1", "--data", str(dataset), "--batch-size", "8", "--threads", "1",
+                   "--val-slice", "0", "--no-progress") == 0
+    source, _, source_extra = load_checkpoint(tmp_path / "a" / "best.pt")
+    assert "optimizers" not in source_extra
+    summary = Trainer(TrainConfig(model="pssnet", data=str(dataset), out=str(tmp_path / "b"), epochs=1,
+                                  batch_size=8, max_steps=1, val_slice=0, progress=False,
+                                  init_from=str(tmp_path / "a" / "best.pt"))).fit()
+    assert summary["pretrain"] is None  # a new flow would change every box code the loaded decoder reads
+    warm, _, extra = load_checkpoint(tmp_path / "b" / "last.pt")
+    assert extra["optimizers"]["main"]["state"][0]["step"] == 1  # best.pt has no optimiser states: fresh ones
+    # Weights (not the batch-norm statistics, which every training batch moves) one flow step at 1e-5 away.
+    flow = {k: v for k, v in source.named_parameters() if k.startswith("flow.")}
+    warm_weights = dict(warm.named_parameters())
+    assert max(float((warm_weights[k] - v).abs().max()) for k, v in flow.items()) < 1e-4
+
+
 def test_init_from_an_inference_only_export_takes_its_weights_and_pretrains_the_flow(tmp_path, dataset):
     cfg = _write_tiny_config(tmp_path / "tiny.yaml", "pssnet")
     assert run_cli("train", "--model", "pssnet", "--out", str(tmp_path / "a"), "--model-config", cfg,

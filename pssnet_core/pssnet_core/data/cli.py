@@ -1,4 +1,4 @@
-"""`pssnet dataset build|preview|stats`."""
+"""`pssnet dataset build|twins|preview|stats`."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from pssnet_core.data import SCALES
+from pssnet_core.data import SCALES, TWINS_PER_VIEW
 from pssnet_core.ray_tasks import TaskRunner, add_ray_options, ray_config
 
 
@@ -23,6 +23,23 @@ def _build(args: argparse.Namespace) -> int:
     for r in results:
         state = f"built {r.shards_built} shards" + (f", {r.shards_skipped} already there" if r.shards_skipped else "")
         print(f"{r.path}: {r.samples} samples ({state}) in {r.seconds:.1f} s")
+    return 0
+
+
+def _twins(args: argparse.Namespace) -> int:
+    from pssnet_core.data.inspect import find_datasets
+    from pssnet_core.data.twins import build_twins
+
+    with TaskRunner(ray_config(args)) as runner:
+        for path in find_datasets(args.data):
+            r = build_twins(path, per_view=args.per_view, seed=args.seed, runner=runner, progress=not args.quiet)
+            if not r.shards_built and not r.shards_skipped:
+                print(f"{r.path}: no mugs, no twins")
+                continue
+            state = f"built {r.shards_built} shards" + (f", {r.shards_skipped} already there"
+                                                        if r.shards_skipped else "")
+            print(f"{r.path}: {r.samples_with_twins} of {r.samples} views have {r.per_view} twins each ({state}) "
+                  f"in {r.seconds:.1f} s")
     return 0
 
 
@@ -64,7 +81,7 @@ def _guarded(handler):
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Adds `dataset build|preview|stats` to the `pssnet` command line."""
+    """Adds `dataset build|twins|preview|stats` to the `pssnet` command line."""
     parser = subparsers.add_parser("dataset", help="build, preview and summarise synthetic datasets")
     sub = parser.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
 
@@ -96,6 +113,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--bottom-margin", type=float, default=None, help="grid bottom margin in voxels (likewise)")
     b.add_argument("--quiet", action="store_true", help="no progress bar")
     b.set_defaults(func=_guarded(_build))
+
+    t = sub.add_parser("twins", help="turned twins of the mug views: extra targets for `pssnet train --twin-rate`",
+                       description="For every mug view with a handle (round bodies): --per-view copies of the mug "
+                                   "turned about its own axis to random azimuths, with their ground-truth grid and "
+                                   "box in the view's grid, written to DIR/twins/ (resumable). Training with "
+                                   "--twin-rate P decodes a share P of each batch from a twin's box code with the "
+                                   "rest of the view's latent, so that the decoder follows the box code where the "
+                                   "rest would veto a handle (pssnet_core/data/twins.py). About 9 ms per twin at "
+                                   "32^3 on one core.")
+    t.add_argument("--data", required=True, help="a dataset directory or a build root holding several (datasets "
+                   "without mugs get no twins)")
+    t.add_argument("--per-view", type=int, default=TWINS_PER_VIEW,
+                   help=f"twins per mug view (one is drawn per view and epoch in training); default {TWINS_PER_VIEW}")
+    t.add_argument("--seed", type=int, default=0, help="seeds the turns; default 0")
+    add_ray_options(t, default_workers=1, what="shards")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(func=_guarded(_twins))
 
     p = sub.add_parser("preview", help="PNG sheet of a few samples (depth, mask, grids)")
     p.add_argument("path", help="a dataset directory or a build root holding several")

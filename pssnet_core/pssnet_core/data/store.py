@@ -11,6 +11,9 @@ Layout of a dataset directory::
     index.json                  meta (grid size, voxel size, family, split, ...), shard list, per-sample records
     shards/00000.npz            voxel grids (bit packed), boxes, other same-shape arrays, records of the shard
     shards/00000.images.npz     depth/mask crops and other variable-shape arrays (not read by training)
+    twins/                      optional turned twins of the mug views (:mod:`pssnet_core.data.twins`):
+    twins/00000.npz             per sample K (occupancy, box) targets of the same mug turned about its axis
+    twins/twins.json            written when every shard has its twins file: only then does training read them
 
 A sample is a dict: numpy arrays (grids, box, images) and plain JSON values (identity, flags, poses).
 """
@@ -20,6 +23,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +31,12 @@ import numpy as np
 
 GRID_KEYS: tuple[str, ...] = ("known_occupied", "known_free", "occupancy")
 TRAINING_KEYS: tuple[str, ...] = (*GRID_KEYS, "box")
+#: one turned twin per sample (its own occupancy and box where it has none); see :meth:`DatasetReader.load_shard`
+TWIN_KEYS: tuple[str, ...] = ("twin_occupancy", "twin_box")
 INDEX_FILE = "index.json"
 SHARD_DIR = "shards"
+TWIN_DIR = "twins"
+TWIN_INDEX = "twins.json"  # not index.json: a dataset directory is one that holds an index.json
 
 
 class DatasetError(ValueError):
@@ -45,6 +53,16 @@ def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
     with open(tmp, "wb") as handle:
         np.savez_compressed(handle, **arrays)
     os.replace(tmp, path)
+
+
+def twins_path(root: str | Path, shard_id: int) -> Path:
+    """The twins file of shard ``shard_id``."""
+    return Path(root) / TWIN_DIR / f"{shard_id:05d}.npz"
+
+
+def has_twins(root: str | Path) -> bool:
+    """True when the dataset directory ``root`` holds a finished twins build (its twins index)."""
+    return (Path(root) / TWIN_DIR / TWIN_INDEX).exists()
 
 
 def shard_exists(root: str | Path, shard_id: int) -> bool:
@@ -87,6 +105,60 @@ def write_shard(root: str | Path, shard_id: int, samples: Sequence[dict[str, Any
     # The images file is written first, so a grid file on disk always has its images beside it.
     _atomic_savez(images_path, side)
     _atomic_savez(grids_path, main)
+
+
+def read_shard_records(root: str | Path, shard_id: int) -> list[dict[str, Any]]:
+    """The records of one shard, read from the shard itself (not from the dataset's index, which may be large)."""
+    grids_path, _ = _shard_paths(Path(root), shard_id)
+    try:
+        with np.load(grids_path) as data:
+            return json.loads(str(data["records"]))
+    except (OSError, ValueError, KeyError) as error:
+        raise DatasetError(f"shard {grids_path} is unreadable: {error}") from error
+
+
+@dataclass(frozen=True)
+class SampleTwins:
+    """The turned twins of one sample (:mod:`pssnet_core.data.twins`).
+
+    Attributes:
+        occupancy: (K, N, N, N) bool, each twin's ground truth in the sample's grid.
+        box: (K, 24) float32, each twin's box in grid coordinates.
+        azimuth_deg: (K,), how far each twin is turned about the mug's axis.
+    """
+
+    occupancy: np.ndarray
+    box: np.ndarray
+    azimuth_deg: np.ndarray
+
+
+def write_twins(root: str | Path, shard_id: int, twins: Sequence[SampleTwins | None], per_view: int,
+                grid_size: int) -> None:
+    """Writes the twins file of one shard atomically: one entry per sample of the shard, in its order.
+
+    Layout: ``occupancy`` (count, K, N^3 / 8) bit packed, ``box`` (count, K, 24) float32, ``azimuth_deg``
+    (count, K) and ``has_twins`` (count,) bool; rows of samples without twins (None) are zeros, never read.
+    """
+    shape = (grid_size,) * 3
+    count = len(twins)
+    packed = np.zeros((count, per_view, (grid_size**3 + 7) // 8), dtype=np.uint8)
+    box = np.zeros((count, per_view, 24), dtype=np.float32)
+    azimuth = np.zeros((count, per_view), dtype=np.float32)
+    for row, sample in enumerate(twins):
+        if sample is None:
+            continue
+        if sample.occupancy.shape != (per_view, *shape) or sample.occupancy.dtype != bool \
+                or sample.box.shape != (per_view, 24) or sample.azimuth_deg.shape != (per_view,):
+            raise DatasetError(f"twins of sample {row} of shard {shard_id}: expected {per_view} bool {shape} grids, "
+                               f"boxes and azimuths, got {sample.occupancy.shape} ({sample.occupancy.dtype}), "
+                               f"{sample.box.shape}, {sample.azimuth_deg.shape}")
+        packed[row] = np.packbits(sample.occupancy.reshape(per_view, -1), axis=1)
+        box[row] = sample.box
+        azimuth[row] = sample.azimuth_deg
+    path = twins_path(root, shard_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_savez(path, {"occupancy": packed, "occupancy__shape": np.array(shape, dtype=np.int64), "box": box,
+                         "azimuth_deg": azimuth, "has_twins": np.array([t is not None for t in twins], dtype=bool)})
 
 
 def finalize(root: str | Path, meta: dict[str, Any]) -> int:
@@ -138,7 +210,8 @@ class DatasetReader:
 
     ``root`` may also be several dataset directories (a sequence, or one string of paths joined by commas):
     they are read as one dataset, their samples numbered in the order given (e.g. mugs then ycb, to train one
-    model on all families). They must share grid size and voxel size; ``meta`` is the first one's.
+    model on all families). They must share grid size and voxel size; ``meta`` is the first one's. Directories
+    with turned twins (:mod:`pssnet_core.data.twins`) and without may be read together: see :meth:`load_shard`.
     """
 
     def __init__(self, root: str | Path | Sequence[str | Path]) -> None:
@@ -159,7 +232,9 @@ class DatasetReader:
                         raise DatasetError(f"{path} has {key} {index['meta'].get(key)}, but {self.root} has "
                                            f"{self.meta.get(key)}: datasets read together must match")
             offset = len(self.records)
-            self._shards.extend({**s, "first": s["first"] + offset, "root": path} for s in index["shards"])
+            twins = has_twins(path)
+            self._shards.extend({**s, "first": s["first"] + offset, "root": path, "twins": twins}
+                                for s in index["shards"])
             self.records.extend(index["records"])
         self._cache: tuple[tuple[int, bool], dict[str, np.ndarray]] | None = None
 
@@ -178,12 +253,26 @@ class DatasetReader:
     def num_shards(self) -> int:
         return len(self._shards)
 
-    def load_shard(self, shard: int, keys: Sequence[str] | None = None,
-                   images: bool = False) -> dict[str, np.ndarray]:
+    @property
+    def has_twins(self) -> bool:
+        """True when at least one of the dataset directories holds turned twins."""
+        return any(s["twins"] for s in self._shards)
+
+    def load_shard(self, shard: int, keys: Sequence[str] | None = None, images: bool = False,
+                   twin_seed: int = 0) -> dict[str, np.ndarray]:
         """Arrays of one shard, grids unpacked to bool (B, N, N, N); ``keys`` limits what is decoded.
 
         Variable-shape arrays (with ``images=True``) come back as object arrays of per-sample arrays.
+        The :data:`TWIN_KEYS` come only when asked for: each sample gets one of its turned twins, drawn by
+        ``twin_seed`` and the shard, or its own occupancy and box when it has none (no handle, not a mug, a
+        directory without twins).
         """
+        wanted_twins = [k for k in TWIN_KEYS if keys is not None and k in keys]
+        if keys is not None and wanted_twins:
+            own = [k for k in keys if k not in TWIN_KEYS]
+            arrays = self.load_shard(shard, [*own, *(k for k in ("occupancy", "box") if k not in own)], images)
+            twins = self._choose_twins(shard, arrays["occupancy"], arrays["box"], twin_seed)
+            return {**{k: arrays[k] for k in own}, **{k: twins[k] for k in wanted_twins}}
         grids_path, images_path = _shard_paths(self._shards[shard]["root"], self._shards[shard]["id"])
         out: dict[str, np.ndarray] = {}
         try:
@@ -216,6 +305,31 @@ class DatasetReader:
         if keys is not None and (missing := [k for k in keys if k not in out]):
             raise DatasetError(f"shard {grids_path} has no arrays named {missing}")
         return out
+
+    def _choose_twins(self, shard: int, occupancy: np.ndarray, box: np.ndarray, seed: int) -> dict[str, np.ndarray]:
+        """One twin per sample of ``shard`` (see :meth:`load_shard`); ``occupancy`` and ``box`` are its own."""
+        info = self._shards[shard]
+        twin_occupancy, twin_box = occupancy.copy(), np.asarray(box, dtype=np.float32).copy()
+        if info["twins"]:
+            path = twins_path(info["root"], info["id"])
+            try:
+                with np.load(path) as data:
+                    packed, boxes, has = data["occupancy"], data["box"], data["has_twins"]
+                    shape = tuple(int(n) for n in data["occupancy__shape"])
+            except (OSError, ValueError, KeyError) as error:
+                raise DatasetError(f"twins file {path} is missing or unreadable: {error}") from error
+            if len(has) != len(occupancy) or shape != occupancy.shape[1:]:
+                raise DatasetError(f"twins file {path} does not match its shard ({len(has)} samples of grid "
+                                   f"{shape}, the shard has {len(occupancy)} of {occupancy.shape[1:]}); "
+                                   "build the twins again")
+            # Seeded by the shard's first sample number too, so that the shards of one epoch draw differently.
+            choice = np.random.default_rng([seed, info["first"]]).integers(packed.shape[1], size=len(has))
+            rows = np.flatnonzero(has)
+            chosen = packed[rows, choice[rows]]
+            twin_occupancy[rows] = np.unpackbits(chosen, axis=1, count=int(np.prod(shape))).astype(bool).reshape(
+                (len(rows), *shape))
+            twin_box[rows] = boxes[rows, choice[rows]]
+        return {"twin_occupancy": twin_occupancy, "twin_box": twin_box}
 
     def get(self, index: int, images: bool = True) -> dict[str, Any]:
         """One whole sample: its arrays (grids unpacked, image crops) and its record."""
@@ -265,7 +379,7 @@ class DatasetReader:
                 pending_count -= batch_size
 
         for shard in order:
-            arrays = self.load_shard(int(shard), keys=keys)
+            arrays = self.load_shard(int(shard), keys=keys, twin_seed=seed)
             first = self._shards[int(shard)]["first"]
             arrays["index"] = np.arange(first, first + self._shards[int(shard)]["count"], dtype=np.int64)
             if wanted is not None:

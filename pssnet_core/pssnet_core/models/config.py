@@ -111,6 +111,10 @@ class PSSNetConfig(VAEConfig):
             first ``box_dim`` outputs), K > 1 = a mixture head over the encoder's output
             (:class:`~pssnet_core.models.box_mixture.BoxMixtureHead`; why: ``results/box_mixture/``).
         box_head_hidden: width of the mixture head's two hidden layers.
+        twin_rate: share of each training batch decoded from a turned twin's box code (the same mug turned about
+            its axis, :mod:`pssnet_core.data.twins`) against the twin's grid, the rest of the latent still from
+            the view: teaches the decoder to follow the box code where the rest would veto a handle. 0 = the
+            paper's training; needs a dataset with twins (``pssnet dataset twins``).
     """
 
     model: ClassVar[str] = "pssnet"
@@ -128,9 +132,12 @@ class PSSNetConfig(VAEConfig):
     flow_weight: float = 1.0
     box_components: int = 1
     box_head_hidden: int = 256
+    twin_rate: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if not 0.0 <= self.twin_rate <= 1.0:
+            raise ConfigError(f"twin_rate must lie in [0, 1], got {self.twin_rate}")
         if self.box_components < 1 or self.box_head_hidden < 1:
             raise ConfigError(f"box_components and box_head_hidden must be >= 1, got {self.box_components}, "
                               f"{self.box_head_hidden}")

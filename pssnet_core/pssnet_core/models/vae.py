@@ -20,6 +20,11 @@ PSSNet specifics (paper sec. 4, DESIGN.md):
   eval mode (running batch-norm statistics), so a box has one embedding regardless of its batch.
 - KL is computed on the non-box dims only.
 - Inference is plain VAE sampling from the encoder's posterior over all 200 dims; the flow is not used.
+- Beyond the paper (``twin_rate`` > 0): for that share of the batch the decoder gets the box code of a turned
+  twin (the view's mug turned about its axis, :mod:`pssnet_core.data.twins`) and must reproduce the twin's grid,
+  while the rest of the latent still comes from the view; the posterior, KL, L_flow and the flow's own fit keep
+  the view's true box. Why: otherwise box code and rest always agree, and the rest learns to veto handles the
+  box code puts at the edges of what the view allows.
 - Beyond the paper (``box_components`` > 1): the box dims' posterior is a mixture of diagonal Gaussians
   (:mod:`pssnet_core.models.box_mixture`), fitted by the same L_flow (its negative log-likelihood of the true
   box's code); the other dims keep the Gaussian. With 1 component the model is the paper's.
@@ -239,10 +244,11 @@ class PSSNet(VAE):
         flow_nll.backward()
         optimizers["flow"].step()
         z_box = self.embed_box(box_n)
+        z_box_dec, y, turned = self._twin_swap(batch, z_box, y, ctx)
 
         z, mu, logvar, _ = self._vae_forward(x, ctx)
         k = self.box_dim
-        z_dec = torch.cat([z_box, z[:, k:]], dim=1)  # box replacement
+        z_dec = torch.cat([z_box_dec, z[:, k:]], dim=1)  # box replacement
         with ctx.autocast():
             logits = self.wrapped("decoder")(z_dec)
         rec = bce_sum(logits, y)
@@ -253,8 +259,29 @@ class PSSNet(VAE):
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        return {"loss": loss.item(), "rec": rec.item(), "kl": kl.item(), "flow": l_flow.item(),
-                "flow_nll": flow_nll.item()}
+        out = {"loss": loss.item(), "rec": rec.item(), "kl": kl.item(), "flow": l_flow.item(),
+               "flow_nll": flow_nll.item()}
+        if turned is not None:
+            out["twins"] = float(turned.float().mean())
+        return out
+
+    def _twin_swap(self, batch: dict[str, torch.Tensor], z_box: torch.Tensor, target: torch.Tensor,
+                   ctx: StepContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The decoder's box codes and targets: a Bernoulli(``twin_rate``) subset of the rows takes its twin's.
+
+        Returns ``(box codes, targets, which rows)``; the inputs unchanged and None with ``twin_rate`` 0.
+        """
+        if not self.config.twin_rate:
+            return z_box, target, None
+        if "twin_box" not in batch or "twin_target" not in batch:
+            raise ValueError("twin_rate > 0 needs twin_box and twin_target in the batch (DatasetReader's TWIN_KEYS "
+                             "of a dataset with twins: `pssnet dataset twins`)")
+        # Drawn by torch's CPU generator, whatever the device: the seed alone fixes which rows turn.
+        turned = (torch.rand(len(z_box)) < self.config.twin_rate).to(ctx.device)
+        twin_code = self.embed_box(self.normalise_box(batch["twin_box"].to(ctx.device)))
+        twin_target = batch["twin_target"].to(ctx.device)
+        return (torch.where(turned[:, None], twin_code, z_box),
+                torch.where(turned.view(-1, *([1] * (target.ndim - 1))), twin_target, target), turned)
 
 
 class VAEGAN(VAE):

@@ -22,7 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Trains a model on a dataset written by `pssnet dataset build`; writes last.pt (resumable), "
                     "best.pt, CSV logs and loss_curves.png to --out. Data parallel across processes and machines "
                     "under torchrun: `torchrun --nproc-per-node K -m pssnet_core train ...` (gloo on CPU, NCCL "
-                    "on GPUs; rank 0 writes --out).")
+                    "on GPUs; rank 0 writes --out). Turned twins (--twin-rate): `pssnet dataset twins --data DIR` "
+                    "first, then e.g. `--init-from RUN/best.pt --twin-rate 0.5` to fine-tune a PSSNet with them.")
     p.add_argument("--model", required=True, choices=model_names())
     p.add_argument("--data", required=True,
                    help="training dataset directory; several joined by commas are read as one (e.g. mugs,ycb)")
@@ -44,8 +45,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init-from", default=None, metavar="CHECKPOINT",
-                   help="warm start a new run: from another run's last.pt (weights + optimiser states) or from an "
-                        "inference-only export such as the shipped model (weights; the flow is pre-trained)")
+                   help="warm start a new run: from another run's last.pt (weights + optimiser states) or best.pt "
+                        "(weights), both keeping PSSNet's flow, which their decoder was trained against (no flow "
+                        "pre-training); or from an inference-only export such as the shipped model (weights; it "
+                        "has no flow, so a new one is pre-trained)")
     p.add_argument("--val-every", type=int, default=0, help="validate every N steps (0: every epoch)")
     p.add_argument("--val-max-samples", type=int, default=512)
     p.add_argument("--val-slice", type=int, default=16, help="inputs for the quick best-accuracy")
@@ -54,6 +57,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--log-every", type=int, default=10)
     p.add_argument("--model-config", default=None,
                    help="YAML of model config overrides, e.g. 'channels: [8, 16, 32, 64]' or 'flow_lr: 1e-4'")
+    p.add_argument("--twin-rate", type=float, default=None, metavar="P",
+                   help="PSSNet: decode a share P of each batch from a turned twin's box code (the view's mug turned "
+                        "about its axis; `pssnet dataset twins` builds them) with the rest of the latent still from "
+                        "the view, against the twin's grid. Why: box code and rest otherwise always agree, and the "
+                        "rest learns to veto handles the box code puts at the edges of what the view allows (drawn "
+                        "21-43 %% of the time at the posterior mean, 98-100 %% with the rest at 0); twins make the "
+                        "decoder follow the box code. Overrides the model config's twin_rate (also that of "
+                        "--init-from or --resume); views without twins (ycb, no handle) use their own box and grid")
     p.add_argument("--half-checkpoint", action="store_true", help="store best.pt as float16")
     p.add_argument("--no-progress", action="store_true", help="no tqdm bars")
     p.set_defaults(func=_train)
@@ -154,7 +165,7 @@ def _train(args: argparse.Namespace) -> int:
                           seed=args.seed, resume=args.resume, init_from=args.init_from, val_every=args.val_every,
                           val_max_samples=args.val_max_samples, val_slice=args.val_slice,
                           val_num_samples=args.val_num_samples, best_metric=args.best_metric,
-                          log_every=args.log_every, model_config=args.model_config,
+                          log_every=args.log_every, model_config=args.model_config, twin_rate=args.twin_rate,
                           half_checkpoint=args.half_checkpoint, progress=not args.no_progress)
         # SIGTERM (kill, a job scheduler, a background job whose SIGINT the shell ignores) stops like Ctrl-C, at
         # the next step boundary: last.pt is saved and --resume continues.

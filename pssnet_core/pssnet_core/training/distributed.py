@@ -228,7 +228,7 @@ def rank_batches(reader: DatasetReader, batch_size: int, seed: int, rank: int, w
     for start in range(0, len(shards), 2):
         parts = []
         for shard in shards[start:start + 2]:
-            arrays = reader.load_shard(shard, keys=keys)
+            arrays = reader.load_shard(shard, keys=keys, twin_seed=seed)
             first, count = spans[shard]
             arrays["index"] = np.arange(first, first + count, dtype=np.int64)
             parts.append(arrays)

@@ -33,10 +33,10 @@ import yaml
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from pssnet_core.data.store import GRID_KEYS, TRAINING_KEYS, DatasetReader
+from pssnet_core.data.store import GRID_KEYS, TRAINING_KEYS, TWIN_KEYS, DatasetReader
 from pssnet_core.models.base import PRECISIONS, CompletionModel, StepContext, resolve_precision
 from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
-from pssnet_core.models.config import ModelConfig, config_from_dict
+from pssnet_core.models.config import ModelConfig, PSSNetConfig, config_from_dict
 from pssnet_core.models.registry import default_config, get_model_class
 from pssnet_core.training import distributed
 from pssnet_core.training.distributed import DistributedRun
@@ -71,10 +71,11 @@ class TrainConfig:
         seed: seeds weights, noise and shuffling.
         resume: continue from ``out/last.pt``.
         init_from: warm start: a new run (step 0, fresh logs, fresh best) whose weights come from this
-            checkpoint, e.g. to fine-tune on rebuilt data. From a training checkpoint (another run's last.pt)
-            the optimiser states come too and the flow is not pre-trained again; from an inference-only export
-            (the shipped model) only the weights come, and the flow it lacks is pre-trained. The model config
-            is the checkpoint's; ``model_config`` must be unset.
+            checkpoint, e.g. to fine-tune on rebuilt data. A checkpoint that carries the training-only modules
+            (another run's last.pt or best.pt) keeps its PSSNet flow, which its decoder was trained against: the
+            flow is not pre-trained again; last.pt also brings its optimiser states. An inference-only export (the
+            shipped model) brings its weights only, and the flow it lacks is pre-trained. The model config is the
+            checkpoint's; ``model_config`` must be unset.
         val_every: validate every this many steps; 0 = at the end of every epoch.
         val_max_samples: validation loss and IoU on at most this many validation samples.
         val_slice: inputs used for the quick best-accuracy.
@@ -82,6 +83,8 @@ class TrainConfig:
         best_metric: which validation number selects best.pt.
         log_every: steps per train_log.csv row.
         model_config: YAML with model config overrides (e.g. channels, latent_dim, flow_lr).
+        twin_rate: PSSNet's ``twin_rate`` for this run (None: the model config's), overriding that of
+            ``model_config``, ``init_from`` or the resumed checkpoint; > 0 needs turned twins in ``data``.
         half_checkpoint: store best.pt in float16 (last.pt stays float32 to resume exactly).
         progress: show tqdm bars.
     """
@@ -108,6 +111,7 @@ class TrainConfig:
     best_metric: str = "val_bce"
     log_every: int = 10
     model_config: str | None = None
+    twin_rate: float | None = None
     half_checkpoint: bool = False
     progress: bool = True
 
@@ -127,6 +131,11 @@ class TrainConfig:
                                 "combined with resume or model_config")
         if self.val_every < 0 or self.log_every < 1 or self.val_num_samples < 1 or self.val_slice < 0:
             raise TrainingError("val_every >= 0, log_every >= 1, val_num_samples >= 1, val_slice >= 0")
+        if self.twin_rate is not None and not 0.0 <= self.twin_rate <= 1.0:
+            raise TrainingError(f"twin_rate must lie in [0, 1], got {self.twin_rate}")
+        if self.twin_rate and self.model != "pssnet":
+            raise TrainingError(f"twin_rate is PSSNet's (turned twins replace its box code); --model is "
+                                f"{self.model!r}")
 
 
 def resolve_context(device: str, precision: str) -> StepContext:
@@ -146,7 +155,8 @@ def resolve_context(device: str, precision: str) -> StepContext:
 
 
 def batch_to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-    """Store batch -> model batch: ``input`` (B,2,N,N,N), ``target`` (B,1,N,N,N) float32, ``box``, ``index``."""
+    """Store batch -> model batch: ``input`` (B,2,N,N,N), ``target`` (B,1,N,N,N) float32, ``box``, ``index``, and
+    with the twin keys ``twin_target`` (B,1,N,N,N) float32 and ``twin_box``."""
     out = {"input": torch.from_numpy(np.stack([batch["known_occupied"], batch["known_free"]], 1)
                                      .astype(np.float32)),
            "index": torch.from_numpy(batch["index"])}
@@ -154,6 +164,10 @@ def batch_to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         out["target"] = torch.from_numpy(batch["occupancy"][:, None].astype(np.float32))
     if "box" in batch:
         out["box"] = torch.from_numpy(np.asarray(batch["box"], dtype=np.float32))
+    if "twin_occupancy" in batch:
+        out["twin_target"] = torch.from_numpy(batch["twin_occupancy"][:, None].astype(np.float32))
+    if "twin_box" in batch:
+        out["twin_box"] = torch.from_numpy(np.asarray(batch["twin_box"], dtype=np.float32))
     return out
 
 
@@ -368,13 +382,13 @@ class Trainer:
                 model, config, extra = load_checkpoint(cfg.init_from)
                 if config.model != cfg.model:
                     raise TrainingError(f"{cfg.init_from} holds a {config.model!r} model, not {cfg.model!r}")
-                # A training checkpoint (last.pt) brings its optimiser states; an inference-only export (e.g.
-                # the shipped model) brings weights only: fresh optimisers, and its dropped training-only
-                # modules (PSSNet's flow) are pre-trained again below.
-                weights_only = bool(extra.get("inference_only")) or "optimizers" not in extra
-                opt_states = None if weights_only else extra["optimizers"]
+                # A training checkpoint (last.pt, best.pt) carries the training-only modules: PSSNet's flow, which
+                # its decoder was trained against, is kept (pre-training a new one would change every box code the
+                # decoder reads); last.pt also brings its optimiser states. An inference-only export (e.g. the
+                # shipped model) brings weights only: fresh optimisers, and the flow it dropped is pre-trained below.
+                opt_states = extra.get("optimizers")
                 state["init_from"] = str(cfg.init_from)
-                state["init_weights_only"] = weights_only
+                state["init_pretrain"] = bool(extra.get("inference_only"))
             else:
                 config = self._model_config()
                 model = get_model_class(config.model)(config)
@@ -386,6 +400,7 @@ class Trainer:
             torch.manual_seed(distributed.rank_seed(cfg.seed, run.rank, state["step"]))
         if config.grid_size != self.train_reader.grid_size:
             raise TrainingError(f"model grid {config.grid_size} != dataset grid {self.train_reader.grid_size}")
+        config = self._apply_twin_rate(model, config)
         if main:
             config.to_yaml(self.out / "model_config.yaml")
             (self.out / "train_config.yaml").write_text(yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False))
@@ -397,6 +412,17 @@ class Trainer:
             return self._train(run, stop, model, config, state, opt_states, say)
         finally:
             model.set_wrappers({})
+
+    def _apply_twin_rate(self, model: CompletionModel, config: ModelConfig) -> ModelConfig:
+        """The run's model config with ``--twin-rate`` applied (also to ``model``); checks the data has twins."""
+        if self.cfg.twin_rate is not None and isinstance(config, PSSNetConfig):
+            config = dataclasses.replace(config, twin_rate=self.cfg.twin_rate)
+            model.config = config
+        twin_rate = getattr(config, "twin_rate", 0.0)
+        if twin_rate > 0 and not self.train_reader.has_twins:
+            raise TrainingError(f"twin_rate {twin_rate} needs turned twins, but no dataset directory of "
+                                f"{self.cfg.data} has them: build them with `pssnet dataset twins --data DIR`")
+        return config
 
     def _check_ranks_see_files(self, run: DistributedRun, last_path: Path) -> None:
         """Every rank reads last.pt / --init-from itself: they must all see the same files."""
@@ -416,6 +442,7 @@ class Trainer:
                say: Callable[[str], None]) -> dict[str, Any]:
         cfg, ctx, main = self.cfg, self.ctx, run.is_main
         last_path = self.out / "last.pt"
+        keys = TRAINING_KEYS + TWIN_KEYS if getattr(config, "twin_rate", 0.0) > 0 else TRAINING_KEYS
         optimizers = model.make_optimizers(cfg.lr)
         if opt_states:
             for name, opt in optimizers.items():
@@ -423,7 +450,7 @@ class Trainer:
                     opt.load_state_dict(opt_states[name])
 
         fresh_run = state["step"] == 0 and state["batch_in_epoch"] == 0 and state["epoch"] == 0
-        if fresh_run and (not cfg.init_from or state.get("init_weights_only")):
+        if fresh_run and (not cfg.init_from or state.get("init_pretrain")):
             t0 = time.perf_counter()
             pre = model.pretrain(self._box_source(run), ctx)
             run.average_buffers(model)
@@ -493,7 +520,7 @@ class Trainer:
                 done = state["samples_in_epoch"] // global_batch
                 # Closed on every way out of the epoch (its end, a stop, an exception): see prefetch.
                 with contextlib.closing(prefetch(map(batch_to_tensors, self._batches(
-                        run, cfg.batch_size, cfg.seed + epoch, drop_last, TRAINING_KEYS)))) as stream:
+                        run, cfg.batch_size, cfg.seed + epoch, drop_last, keys)))) as stream:
                     bar = tqdm(total=steps_per_epoch, initial=done, desc=f"epoch {epoch}",
                                disable=not (cfg.progress and main), dynamic_ncols=True, leave=False)
                     sums: dict[str, float] = {}
