@@ -63,7 +63,8 @@ def main() -> None:
         packed = BitRows.pack(occupancy)
         check = GridCheck.prepare(view.known_occupied, view.known_free, view.grid_pose, config.delta)
         missed, free = check.violations(occupancy, packed)
-        ok = (missed <= config.max_missed_fraction) & (free <= config.max_free_voxels)
+        source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
+        ok = config.accepts(missed, free, source == 0)
         accepted = np.flatnonzero(ok)
         if not len(accepted):
             none_accepted += 1
@@ -76,7 +77,6 @@ def main() -> None:
                              ("selected", accepted[picked])):
             scores = arc_scores(arc, azimuths[index])
             stages[stage].append((scores.coverage, scores.precision, scores.rate))
-        source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
         for i, name in enumerate(SOURCES):
             kept = ok & (source == i)
             if (source == i).any():

@@ -18,8 +18,8 @@ from pssnet_core.data.build import build_dataset, dataset_path
 from pssnet_core.data.datasets import dataset_specs
 from pssnet_core.data.scenes import box_in_grid
 from pssnet_core.data.store import TRAINING_KEYS, TWIN_DIR, TWIN_INDEX, TWIN_KEYS, DatasetReader, twins_path
-from pssnet_core.data.twins import build_twins, can_turn, turned_pose, twin_azimuths
-from pssnet_core.evaluation.handles import HandleGeometry, handle_azimuths
+from pssnet_core.data.twins import build_twins, can_turn, twin_azimuths
+from pssnet_core.evaluation.handles import HandleGeometry, handle_azimuths, turned
 from pssnet_core.geometry import GridPose
 from pssnet_core.models.base import StepContext, bce_sum
 from pssnet_core.shapes import shape_of
@@ -87,7 +87,7 @@ def test_twin_box_is_the_view_box_turned_about_the_mug_axis(built):
             # In the mug's frame the twin's corners are the view's turned about z; in the grid the box moved.
             np.testing.assert_allclose(object_from_grid(sample, boxes[i, k]), corners @ turn.T, atol=1e-4)
             assert np.abs(boxes[i, k] - sample["box"]).max() > 1.0
-            expected = box_in_grid(shape, turned_pose(np.asarray(sample["object_pose"]), azimuth),
+            expected = box_in_grid(shape, turned(np.asarray(sample["object_pose"]), azimuth),
                                    GridPose.from_dict(sample["grid_pose"]), np.asarray(sample["camera_pose"]))
             np.testing.assert_allclose(boxes[i, k], expected, atol=1e-4)
 

@@ -90,6 +90,15 @@ class CheckedSamplerConfig:
             raise ValueError(f"max_free_voxels must be >= 0 and max_proposals >= 1, got {self.max_free_voxels}, "
                              f"{self.max_proposals}")
 
+    def accepts(self, missed: np.ndarray, free: np.ndarray, posterior: np.ndarray) -> np.ndarray:
+        """(P,) bool: the proposals the check keeps, from their :meth:`GridCheck.violations` (``missed`` share of
+        the observed voxels, ``free`` voxels); ``posterior`` marks the posterior source's proposals, whose median
+        ``missed`` sets the ``missed_margin`` limit."""
+        limit = self.max_missed_fraction
+        if self.missed_margin > 0:
+            limit = max(limit, float(np.median(missed[posterior])) + self.missed_margin)
+        return (missed <= limit) & (free <= self.max_free_voxels)
+
     def proposal_counts(self, num_samples: int, has_box: bool) -> dict[str, int]:
         """Proposals per source for ``num_samples`` requested samples (at least ``num_samples`` in all)."""
         total = min(max(num_samples * self.proposals_per_sample, num_samples), max(self.max_proposals, num_samples))
@@ -278,10 +287,7 @@ class CheckedSampler:
         packed = BitRows.pack(occupancy)
         missed, free = check.violations(occupancy, packed)
         source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
-        limit = self.sampler_config.max_missed_fraction
-        if self.sampler_config.missed_margin > 0:
-            limit = max(limit, float(np.median(missed[source == 0])) + self.sampler_config.missed_margin)
-        ok = (missed <= limit) & (free <= self.sampler_config.max_free_voxels)
+        ok = self.sampler_config.accepts(missed, free, source == 0)
         accepted = np.flatnonzero(ok)
         note = ""
         if len(accepted) == 0:

@@ -55,6 +55,16 @@ def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
     os.replace(tmp, path)
 
 
+def write_json_atomically(path: str | Path, data: Any) -> None:
+    """Writes ``data`` as JSON to ``path`` (its folder made if needed) through a temporary file and a rename, so
+    that a reader never sees half a file and an interrupted write leaves the old one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data))
+    os.replace(tmp, path)
+
+
 def twins_path(root: str | Path, shard_id: int) -> Path:
     """The twins file of shard ``shard_id``."""
     return Path(root) / TWIN_DIR / f"{shard_id:05d}.npz"
@@ -180,9 +190,7 @@ def finalize(root: str | Path, meta: dict[str, Any]) -> int:
     if not records:
         raise DatasetError(f"no shards found in {root / SHARD_DIR}")
     index = {"meta": meta, "num_samples": len(records), "shards": shards, "records": records}
-    tmp = root / f".{INDEX_FILE}.tmp"
-    tmp.write_text(json.dumps(index))
-    os.replace(tmp, root / INDEX_FILE)
+    write_json_atomically(root / INDEX_FILE, index)
     return len(records)
 
 

@@ -9,7 +9,7 @@ grid disagree with the rest of the latent; ``pssnet train --twin-rate P`` decode
 twin's box code (the rest still from the view) against the twin's grid, so the decoder must follow the box code.
 
 A twin of sample ``index``: the object pose turned about the mug's own z axis, ``object_pose @ Rz(a)`` (the mug
-frame's z is the body's axis through the origin and the handle points along +x, as in
+frame's z is the body's axis through the origin and the handle points along +x;
 :func:`pssnet_core.evaluation.handles.turned`), with ``a`` uniform in [-180, 180) degrees, ``per_view`` of them drawn
 by ``(seed, index)``. Its occupancy and box are made exactly as :func:`~pssnet_core.data.datasets.make_sample` makes
 the sample's, in the sample's grid pose and camera. Only mugs with a handle and a round body get twins: a square
@@ -30,7 +30,6 @@ so running the same command again resumes.
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from pssnet_core.data.scenes import ObjectScene, box_in_grid, rotation_z
+from pssnet_core.data.scenes import ObjectScene, box_in_grid
 from pssnet_core.data.store import (
     TWIN_DIR,
     TWIN_INDEX,
@@ -47,8 +46,10 @@ from pssnet_core.data.store import (
     SampleTwins,
     read_shard_records,
     twins_path,
+    write_json_atomically,
     write_twins,
 )
+from pssnet_core.evaluation.handles import turned
 from pssnet_core.geometry import GridPose
 from pssnet_core.ray_tasks import TaskRunner
 from pssnet_core.shapes import Shape, shape_of
@@ -70,13 +71,6 @@ class TwinsResult:
     seconds: float
 
 
-def turned_pose(object_pose: np.ndarray, azimuth_deg: float) -> np.ndarray:
-    """World <- object pose of the mug turned by ``azimuth_deg`` about its own z axis (its handle moves by that)."""
-    turn = np.eye(4)
-    turn[:3, :3] = rotation_z(azimuth_deg)
-    return np.asarray(object_pose, dtype=np.float64) @ turn
-
-
 def can_turn(shape: Shape) -> bool:
     """A mug with a handle and a round body: turned about its axis, only the handle moves."""
     attributes = shape.attributes
@@ -94,7 +88,7 @@ def make_twins(record: dict[str, Any], scene: ObjectScene, azimuths: np.ndarray)
     pose = np.asarray(record["object_pose"], dtype=np.float64)
     camera = np.asarray(record["camera_pose"], dtype=np.float64)
     grid_pose = GridPose.from_dict(record["grid_pose"])
-    poses = [turned_pose(pose, a) for a in azimuths]
+    poses = [turned(pose, a) for a in azimuths]  # the turn is in the object frame: any parent frame will do
     return SampleTwins(occupancy=np.stack([scene.ground_truth(p, grid_pose, camera) for p in poses]),
                        box=np.stack([box_in_grid(scene.shape, p, grid_pose, camera) for p in poses]),
                        azimuth_deg=np.asarray(azimuths, dtype=np.float32))
@@ -122,12 +116,6 @@ def _shard_task(shard_id: int, root: str, per_view: int, seed: int) -> int:
     return build_twin_shard(root, shard_id, per_view, seed, threads=1)
 
 
-def _write_json(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
 def _check_spec(directory: Path, spec: dict[str, Any]) -> None:
     path = directory / SPEC_FILE
     if path.exists():
@@ -140,7 +128,7 @@ def _check_spec(directory: Path, spec: dict[str, Any]) -> None:
                                "same --per-view and --seed, or delete that directory")
     else:
         directory.mkdir(parents=True, exist_ok=True)
-        _write_json(path, spec)
+        write_json_atomically(path, spec)
 
 
 def build_twins(root: str | Path, per_view: int = 4, seed: int = 0, runner: TaskRunner | None = None,
@@ -183,7 +171,7 @@ def build_twins(root: str | Path, per_view: int = 4, seed: int = 0, runner: Task
              "shards": len(shard_ids)}
     index_path = directory / TWIN_INDEX
     if not index_path.exists() or json.loads(index_path.read_text()) != index:
-        _write_json(index_path, index)
+        write_json_atomically(index_path, index)
     return TwinsResult(path=root, samples=len(reader), samples_with_twins=with_twins, per_view=per_view,
                        shards_built=len(todo), shards_skipped=len(shard_ids) - len(todo),
                        seconds=time.perf_counter() - start)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from pssnet_core.data.store import write_json_atomically
 from pssnet_core.evaluation.ambiguity_sets import (
     AmbiguityError,
     AmbiguityMeasure,
@@ -29,13 +29,6 @@ from pssnet_core.evaluation.ambiguity_sets import (
 from pssnet_core.evaluation.experiment import nanmean
 from pssnet_core.evaluation.observation_model import DepthView
 from pssnet_core.evaluation.plausible import EvalView
-
-
-def _atomic_write_json(path: Path, data: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data))
-    os.replace(tmp, path)
 
 
 def cache_path(cache_dir: str | Path, fingerprint: str, kind: str, measure: AmbiguityMeasure) -> Path:
@@ -57,7 +50,7 @@ def load_cached(path: Path, kind: str) -> dict[int, HandleArc | SlitRange]:
 
 def save_cached(path: Path, entries: Mapping[int, HandleArc | SlitRange]) -> None:
     """Writes the entries of a cache file (atomically: a reader never sees half a file)."""
-    _atomic_write_json(path, {"views": {str(k): v.to_json() for k, v in sorted(entries.items())}})
+    write_json_atomically(path, {"views": {str(k): v.to_json() for k, v in sorted(entries.items())}})
 
 
 class AmbiguityTestSet:
