@@ -12,7 +12,8 @@ and measures the handle of each decoded shape (pssnet_core.evaluation.handles):
    posterior mean, halfway to the prior's mean, and at the prior's mean (0) -> where does the decoder stop drawing
    the handle where the box says, and is it the decoder or the rest of the latent that stops it?
 
-Needs a training checkpoint (the flow embeds boxes; exports drop it). Usage:
+Needs a checkpoint with its flow (it embeds boxes): a training checkpoint, or an export written since exports
+keep it (the shipped model's does not). Usage:
     .venv/bin/python scripts/box_code_diagnosis.py --checkpoint runs/pssnet32_large/best.pt --views 24
 """
 
@@ -65,9 +66,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--reach-step", type=float, default=15.0, help="azimuth step of the reach measure (deg)")
     args = parser.parse_args()
-    model = load_checkpoint(args.checkpoint)[0].eval()
+    model, _, extra = load_checkpoint(args.checkpoint)
+    model.eval()
     if not model.has_box_latent:
         raise SystemExit("the checkpoint has no box part (PSSNet only)")
+    if "flow." in extra["missing_modules"]:
+        raise SystemExit(f"{args.checkpoint} was exported without its flow: use its training checkpoint")
     views = [v for v in load_test_set(args.data)[0] if v.meta.get("handle_visible") is False]
     rng = np.random.default_rng(args.seed)
     views = [views[i] for i in sorted(rng.choice(len(views), min(args.views, len(views)), replace=False))]

@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from test_models_helpers import make_dataset, tiny_model
+from test_models_helpers import export_as_before_stop_38, make_dataset, tiny_model
 
 from pssnet_core.models import StepContext, config_from_dict
 from pssnet_core.models.box_mixture import BoxMixtureHead
@@ -80,7 +80,7 @@ def test_pssnet_with_a_mixture_trains_samples_reconstructs_and_round_trips(tmp_p
         again = model.sample(x[:1], 5, generator=torch.Generator().manual_seed(0))
         assert probs.shape == (5, 1, GRID, GRID, GRID) and torch.equal(probs, again)
         assert model.reconstruct(x[:1]).shape == (1, 1, GRID, GRID, GRID)
-    # The export keeps the head (it samples); it drops only the flow.
+    # The export keeps the head (it samples).
     save_checkpoint(tmp_path / "m.pt", model)
     export_checkpoint(tmp_path / "m.pt", tmp_path / "e.pt")
     loaded, config, _ = load_checkpoint(tmp_path / "e.pt")
@@ -98,7 +98,7 @@ def test_configs_written_before_the_mixture_load_as_the_papers_gaussian():
     assert tiny_model("pssnet").box_head is None
 
 
-def test_fit_box_head_writes_a_mixture_checkpoint_that_fits_the_training_boxes(tmp_path):
+def test_fit_box_head_writes_a_mixture_checkpoint_that_fits_the_training_boxes(tmp_path, monkeypatch):
     data = make_dataset(tmp_path / "data", num=40, grid=GRID)
     base = tiny_model("pssnet")
     save_checkpoint(tmp_path / "base.pt", base)
@@ -115,10 +115,15 @@ def test_fit_box_head_writes_a_mixture_checkpoint_that_fits_the_training_boxes(t
     for name, tensor in model.state_dict().items():
         if not name.startswith("box_head."):
             torch.testing.assert_close(tensor, base_state[name])
-    # An export has no flow to embed the true boxes: refused with the reason.
-    export_checkpoint(tmp_path / "base.pt", tmp_path / "export.pt")
-    with pytest.raises(CheckpointError, match="flow"):
+    # An export written before exports kept the flow has none to embed the true boxes: refused with the reason.
+    export_as_before_stop_38(tmp_path / "base.pt", tmp_path / "export.pt", monkeypatch)
+    with pytest.raises(CheckpointError, match="without the flow"):
         fit_box_head(BoxHeadFitConfig(checkpoint=str(tmp_path / "export.pt"), data=str(data),
                                       out=str(tmp_path / "x.pt"), components=2, steps=1, threads=1))
+    # Today's export keeps it: the head fits from the export as from the training checkpoint.
+    export_checkpoint(tmp_path / "base.pt", tmp_path / "export_with_flow.pt")
+    fitted = fit_box_head(BoxHeadFitConfig(checkpoint=str(tmp_path / "export_with_flow.pt"), data=str(data),
+                                           out=str(tmp_path / "y.pt"), components=2, steps=1, threads=1))
+    assert math.isfinite(fitted["val_nll_mixture"])
     with pytest.raises(ValueError, match="components"):
         BoxHeadFitConfig(checkpoint="a", data="b", out="c", components=1)

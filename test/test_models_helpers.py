@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import torch
 
 from pssnet_core.data.store import DatasetError, finalize, write_shard
@@ -83,3 +84,14 @@ def make_dataset(path: Path, num: int = 24, grid: int = 16, seed: int = 0, shard
         writer.add({**cuboid_sample(rng, grid), "object_id": f"cuboid{i}"})
     writer.close()
     return path
+
+
+def export_as_before_stop_38(src: Path, dst: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """An inference-only export of ``src`` as exports were written before they kept PSSNet's flow (the shipped
+    model is one): the flow dropped like a discriminator."""
+    from pssnet_core.models.checkpoint import export_checkpoint
+    from pssnet_core.models.vae import PSSNet
+
+    with monkeypatch.context() as patch:
+        patch.setattr(PSSNet, "training_only_prefixes", ("flow.",))
+        return export_checkpoint(src, dst)

@@ -16,9 +16,15 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from test_models_helpers import TINY_BY_MODEL, make_dataset, tiny_model
+from test_models_helpers import TINY_BY_MODEL, export_as_before_stop_38, make_dataset, tiny_model
 
-from pssnet_core.models.checkpoint import CheckpointError, export_checkpoint, load_checkpoint, save_checkpoint
+from pssnet_core.models.checkpoint import (
+    CheckpointError,
+    export_checkpoint,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+)
 from pssnet_core.training import TrainConfig, Trainer, TrainingError, chamfer_mm
 from pssnet_core.training.cli import register
 from pssnet_core.training.trainer import prefetch, resolve_context
@@ -65,11 +71,21 @@ def test_checkpoint_fp16_and_inference_only_export(tmp_path):
     model = tiny_model("pssnet")
     full = save_checkpoint(tmp_path / "full.pt", model)
     half = export_checkpoint(full, tmp_path / "half.pt")
-    assert half.stat().st_size < 0.6 * full.stat().st_size
+    def weight_bytes(path) -> int:
+        return sum(t.numel() * t.element_size() for t in read_checkpoint(path)["state_dict"].values())
+
+    assert weight_bytes(half) <= 0.5 * weight_bytes(full)  # fp16: half the bytes, nothing but state dropped
     loaded, _, extra = load_checkpoint(half)
-    assert extra["inference_only"] and extra["storage_dtype"] == "float16"
+    assert extra["inference_only"] and extra["storage_dtype"] == "float16" and extra["missing_modules"] == []
     assert all(p.dtype == torch.float32 for p in loaded.parameters())
     assert float((sample(loaded) - sample(model)).abs().max()) < 1e-2
+    # The export keeps PSSNet's flow (it maps boxes to the decoder's codes), fp16-rounded.
+    torch.testing.assert_close(loaded.flow.layers[0].net[0].weight, model.flow.layers[0].net[0].weight,
+                               atol=1e-3, rtol=1e-3)
+    # A GAN's discriminator is dropped, and the load says so.
+    gan = save_checkpoint(tmp_path / "gan.pt", tiny_model("vae_gan"))
+    _, _, gan_extra = load_checkpoint(export_checkpoint(gan, tmp_path / "gan_ship.pt"))
+    assert gan_extra["missing_modules"] == ["discriminator."]
     # fp16 storage keeping every module also loads.
     loaded2, _, _ = load_checkpoint(save_checkpoint(tmp_path / "h2.pt", model, half=True))
     torch.testing.assert_close(loaded2.flow.layers[0].net[0].weight, model.flow.layers[0].net[0].weight,
@@ -232,19 +248,30 @@ def test_init_from_best_pt_keeps_the_flow_its_decoder_was_trained_against(tmp_pa
     assert max(float((warm_weights[k] - v).detach().abs().max()) for k, v in flow.items()) < 1e-4
 
 
-def test_init_from_an_inference_only_export_takes_its_weights_and_pretrains_the_flow(tmp_path, dataset):
+def test_init_from_an_inference_only_export_takes_its_weights_and_its_flow(tmp_path, dataset, monkeypatch):
     cfg = _write_tiny_config(tmp_path / "tiny.yaml", "pssnet")
     assert run_cli("train", "--model", "pssnet", "--out", str(tmp_path / "a"), "--model-config", cfg,
                    "--epochs", "1", "--data", str(dataset), "--batch-size", "8", "--threads", "1",
                    "--val-slice", "0", "--no-progress") == 0
     assert run_cli("export-model", str(tmp_path / "a" / "last.pt"), str(tmp_path / "ship.pt")) == 0
+
+    def warm_start(export: str, out: str) -> dict:
+        return Trainer(TrainConfig(model="pssnet", data=str(dataset), out=str(tmp_path / out), epochs=1,
+                                   batch_size=8, max_steps=1, val_slice=0, progress=False, log_every=1,
+                                   init_from=str(tmp_path / export))).fit()
+
+    # An export written before exports kept the flow (the shipped model's kind): a new flow is pre-trained.
+    export_as_before_stop_38(tmp_path / "a" / "last.pt", tmp_path / "old_ship.pt", monkeypatch)
+    assert load_checkpoint(tmp_path / "old_ship.pt")[2]["missing_modules"] == ["flow."]
+    assert warm_start("old_ship.pt", "old")["pretrain"] is not None
+    # Today's export brings its flow, which the decoder was trained against: kept, not pre-trained again.
     shipped, _, _ = load_checkpoint(tmp_path / "ship.pt")
-    summary = Trainer(TrainConfig(model="pssnet", data=str(dataset), out=str(tmp_path / "b"), epochs=1,
-                                  batch_size=8, max_steps=1, val_slice=0, progress=False, log_every=1,
-                                  init_from=str(tmp_path / "ship.pt"))).fit()
+    summary = warm_start("ship.pt", "b")
     assert summary["steps"] == 1 and summary["stopped_by"] == "max_steps"
-    assert summary["pretrain"] is not None  # the export has no flow: it is pre-trained again
+    assert summary["pretrain"] is None
     warm, _, extra = load_checkpoint(tmp_path / "b" / "last.pt")
+    torch.testing.assert_close(warm.flow.layers[0].net[0].weight, shipped.flow.layers[0].net[0].weight,
+                               atol=1e-3, rtol=0)  # one step at flow_lr from the exported flow
     assert extra["optimizers"]["main"]["state"][0]["step"] == 1  # fresh optimiser, one update
     shipped_state = shipped.state_dict()
     moved = [float((v - shipped_state[k].float()).abs().max()) for k, v in warm.state_dict().items()

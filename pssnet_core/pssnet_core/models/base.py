@@ -109,8 +109,11 @@ class CompletionModel(nn.Module):
     """Base class of the registry's models; see the module docstring for the interface."""
 
     name: ClassVar[str] = ""
-    #: parameter-name prefixes used only for training; an inference export may drop them.
+    #: parameter-name prefixes used only for training; an inference export drops them.
     training_only_prefixes: ClassVar[tuple[str, ...]] = ()
+    #: parameter-name prefixes an inference export may lack because older exports dropped them; a model loaded
+    #: without them samples, and the load lists them in ``extra["missing_modules"]``.
+    export_optional_prefixes: ClassVar[tuple[str, ...]] = ()
     #: whether :meth:`sample` runs the fused CPU inference path of :mod:`pssnet_core.models.networks`.
     fuses_sampling: ClassVar[bool] = False
     #: leading latent dims that encode the object's box (PSSNet sets it from its config; 0 = no box part).

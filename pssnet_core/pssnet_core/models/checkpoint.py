@@ -6,7 +6,7 @@ File layout (a ``torch.save`` dict, loaded with ``weights_only=True``)::
     config: ModelConfig.to_dict()          -> the registry rebuilds the model from it alone
     state_dict: weights (float32, or float16 for a compact export)
     storage_dtype: "float32" | "float16"
-    inference_only: bool                   -> training-only modules (flow, discriminator) were dropped
+    inference_only: bool                   -> training-only modules (GAN discriminators) and state were dropped
     extra: dict                            -> free-form (training state, optimiser states, metrics)
     integrity: dict                        -> SHA-256 of the stored weights, their ranges and the self-test
                                               record (pssnet_core.models.integrity); written on every save
@@ -62,8 +62,8 @@ def save_checkpoint(path: str | Path, model: CompletionModel, config: ModelConfi
         config: its config (default: ``model.config``).
         extra: free-form dict of tensors/numbers/strings (e.g. training state).
         half: store floating-point weights as float16 (half the size; loaded back as float32).
-        inference_only: drop the training-only modules (``model.training_only_prefixes``: the PSSNet flow,
-            GAN discriminators); such a checkpoint samples but cannot resume training.
+        inference_only: drop the training-only modules (``model.training_only_prefixes``: GAN discriminators);
+            such a checkpoint samples but cannot resume training.
 
     Returns:
         The path written.
@@ -78,7 +78,7 @@ def save_checkpoint(path: str | Path, model: CompletionModel, config: ModelConfi
             tensor = tensor.to(torch.float16)
         state[name] = tensor.clone()
     # The self-test is recorded from the weights as they will be loaded (fp16-rounded for a compact export).
-    record = make_record(state, _model_from_state(config, state, inference_only, path))
+    record = make_record(state, _model_from_state(config, state, inference_only, path)[0])
     payload = {"format": FORMAT, "version": VERSION, "config": config.to_dict(), "state_dict": state,
                "storage_dtype": "float16" if half else "float32", "inference_only": bool(inference_only),
                "extra": extra or {}, "integrity": record}
@@ -121,8 +121,9 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 
 
 def _model_from_state(config: ModelConfig, state: dict[str, torch.Tensor], inference_only: bool,
-                      path: str | Path) -> CompletionModel:
-    """A CPU model in eval mode holding ``state`` as float32, as every load builds it."""
+                      path: str | Path) -> tuple[CompletionModel, list[str]]:
+    """A CPU model in eval mode holding ``state`` as float32, as every load builds it, and the prefixes of the
+    modules an inference-only export lacks (``training_only_prefixes``, ``export_optional_prefixes``)."""
     model = build_model(config)
     floats = {k: (v.float() if v.is_floating_point() else v) for k, v in state.items()}
     try:
@@ -130,12 +131,13 @@ def _model_from_state(config: ModelConfig, state: dict[str, torch.Tensor], infer
     except RuntimeError as error:  # shape mismatch
         reason = " ".join(str(error).split())
         raise CheckpointError(f"{path}: weights do not fit its config: {reason}") from error
-    allowed = model.training_only_prefixes if inference_only else ()
+    allowed = model.training_only_prefixes + model.export_optional_prefixes if inference_only else ()
+    absent = sorted({prefix for prefix in allowed for k in missing if k.startswith(prefix)})
     missing = [k for k in missing if not k.startswith(allowed)] if allowed else list(missing)
     if missing or unexpected:
         raise CheckpointError(f"{path}: weights do not match the {config.model} model "
                               f"(missing {missing[:5]}, unexpected {list(unexpected)[:5]})")
-    return model.eval()
+    return model.eval(), absent
 
 
 @dataclass(frozen=True)
@@ -168,7 +170,7 @@ def load_verified(path: str | Path, map_location: str | torch.device = "cpu", *,
     except ConfigError as error:
         raise CheckpointError(f"{path} has an invalid model config: {error}") from error
     inference_only = bool(payload.get("inference_only", False))
-    model = _model_from_state(config, payload["state_dict"], inference_only, path)
+    model, absent = _model_from_state(config, payload["state_dict"], inference_only, path)
     record = payload.get("integrity")
     if record is None and for_serving:
         raise CheckpointError(f"{path} has no integrity record (SHA-256 and self-test; saved before checkpoints "
@@ -186,6 +188,7 @@ def load_verified(path: str | Path, map_location: str | torch.device = "cpu", *,
     extra = dict(payload.get("extra") or {})
     extra.setdefault("inference_only", inference_only)
     extra.setdefault("storage_dtype", payload.get("storage_dtype", "float32"))
+    extra["missing_modules"] = absent  # what the file lacks, e.g. ["flow."] (freshly initialised in the model)
     return LoadedCheckpoint(model, config, extra, result)
 
 
@@ -211,7 +214,8 @@ def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
     from pssnet_core.models.base import ModelInputError, check_box_temperature
 
     model, config, extra = load_checkpoint(src)
-    kept = {k: v for k, v in extra.items() if k not in ("optimizers", "rng", "inference_only", "storage_dtype")}
+    kept = {k: v for k, v in extra.items()
+            if k not in ("optimizers", "rng", "inference_only", "storage_dtype", "missing_modules")}
     kept["exported_from"] = str(src)
     if box_temperature is not None:
         try:

@@ -145,7 +145,10 @@ class PSSNet(VAE):
     """VAE whose first ``box_dim`` latent dims encode the object's bounding box through a RealNVP flow."""
 
     name = "pssnet"
-    training_only_prefixes = ("flow.",)
+    # Exports keep the flow (0.5 MB; fp16 half that): it maps boxes to the codes the decoder reads, which box-code
+    # diagnosis, box-head fits, turned twins and fine-tunes from an export need. The exports written before
+    # 2026-11-27 (the shipped model among them) dropped it: they load and sample, without it.
+    export_optional_prefixes = ("flow.",)
 
     def __init__(self, config: PSSNetConfig) -> None:
         super().__init__(config)

@@ -36,7 +36,8 @@ class BoxHeadFitConfig:
     """Parameters of :func:`fit_box_head`.
 
     Attributes:
-        checkpoint: a PSSNet *training* checkpoint (its flow embeds the true boxes; exports drop the flow).
+        checkpoint: a PSSNet checkpoint with its flow (which embeds the true boxes): a training checkpoint or
+            an export written since exports keep it.
         data: training dataset directories (comma-joined, as ``pssnet train --data``).
         out: the checkpoint to write.
         components: K, the mixture's components (>= 2).
@@ -99,9 +100,9 @@ def fit_box_head(config: BoxHeadFitConfig, log: Any = print) -> dict[str, Any]:
     base, base_config, extra = load_checkpoint(config.checkpoint)
     if not isinstance(base, PSSNet):
         raise CheckpointError(f"{config.checkpoint} is a {base_config.model} checkpoint; a box head needs PSSNet")
-    if extra.get("inference_only"):
-        raise CheckpointError(f"{config.checkpoint} is an inference-only export without the flow; fit the head "
-                              f"on the training checkpoint (runs/<name>/best.pt)")
+    if "flow." in extra["missing_modules"]:
+        raise CheckpointError(f"{config.checkpoint} is an export written without the flow; fit the head on the "
+                              f"training checkpoint (runs/<name>/best.pt)")
     t0 = time.perf_counter()
     features, codes = encoder_pairs(base, config.data, config.max_views, config.seed)
     seconds_pairs = time.perf_counter() - t0
@@ -148,7 +149,7 @@ def fit_box_head(config: BoxHeadFitConfig, log: Any = print) -> dict[str, Any]:
     log(f"validation NLL of the true box codes: mixture {mixture_val:.2f}, the Gaussian it replaces "
         f"{gaussian_val:.2f} nats per box")
     kept = {k: v for k, v in extra.items() if k not in ("optimizers", "rng", "train_state", "inference_only",
-                                                   "storage_dtype")}
+                                                   "storage_dtype", "missing_modules")}
     kept["box_head_fit"] = summary
     save_checkpoint(Path(config.out), model, new_config, kept)
     return summary

@@ -46,9 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                    help="warm start a new run: from another run's last.pt (weights + optimiser states) or best.pt "
-                        "(weights), both keeping PSSNet's flow, which their decoder was trained against (no flow "
-                        "pre-training); or from an inference-only export such as the shipped model (weights; it "
-                        "has no flow, so a new one is pre-trained)")
+                        "(weights), or from an inference-only export (weights), all keeping PSSNet's flow, which "
+                        "their decoder was trained against (no flow pre-training); an export written before exports "
+                        "kept the flow (the shipped model) gets a new one pre-trained")
     p.add_argument("--val-every", type=int, default=0, help="validate every N steps (0: every epoch)")
     p.add_argument("--val-max-samples", type=int, default=512)
     p.add_argument("--val-slice", type=int, default=16, help="inputs for the quick best-accuracy")
@@ -70,14 +70,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_train)
 
     e = subparsers.add_parser(
-        "export-model", help="compact checkpoint for shipping (fp16, no flow/discriminator/optimiser state)")
+        "export-model", help="compact checkpoint for shipping (fp16, no discriminator/optimiser state; PSSNet keeps "
+                             "its flow)")
     e.add_argument("src", help="checkpoint written by `pssnet train` (best.pt)")
     e.add_argument("dst", help="output file, e.g. pssnet_core/checkpoints/default_pssnet_32.pt")
     e.add_argument("--fp32", action="store_true", help="keep float32 weights")
     e.add_argument("--box-temperature", type=float, default=None,
                    help="record the box temperature calibrated for this model (PSSNet; the default of its users)")
     e.add_argument("--keep-training-modules", action="store_true",
-                   help="keep the flow / discriminator (needed to fine-tune from the export)")
+                   help="keep the GAN discriminator (needed to fine-tune a VAE-GAN or 3D-RecGAN++ from the export)")
     e.set_defaults(func=_export)
 
     q = subparsers.add_parser(

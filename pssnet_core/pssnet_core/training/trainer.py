@@ -382,13 +382,13 @@ class Trainer:
                 model, config, extra = load_checkpoint(cfg.init_from)
                 if config.model != cfg.model:
                     raise TrainingError(f"{cfg.init_from} holds a {config.model!r} model, not {cfg.model!r}")
-                # A training checkpoint (last.pt, best.pt) carries the training-only modules: PSSNet's flow, which
-                # its decoder was trained against, is kept (pre-training a new one would change every box code the
-                # decoder reads); last.pt also brings its optimiser states. An inference-only export (e.g. the
-                # shipped model) brings weights only: fresh optimisers, and the flow it dropped is pre-trained below.
+                # PSSNet's flow, which the decoder was trained against, is kept (pre-training a new one would change
+                # every box code the decoder reads); last.pt also brings its optimiser states. An export brings
+                # weights only (fresh optimisers); one written without the flow (before exports kept it, e.g. the
+                # shipped model) gets a new flow pre-trained below.
                 opt_states = extra.get("optimizers")
                 state["init_from"] = str(cfg.init_from)
-                state["init_pretrain"] = bool(extra.get("inference_only"))
+                state["init_pretrain"] = "flow." in extra["missing_modules"]
             else:
                 config = self._model_config()
                 model = get_model_class(config.model)(config)
