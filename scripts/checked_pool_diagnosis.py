@@ -56,7 +56,7 @@ def main() -> None:
     none_accepted = 0
     n = completer.grid_size
     for view in hidden:
-        counts = config.proposal_counts(args.samples, completer.has_box_latent)
+        counts = config.proposal_counts(args.samples, sampler.has_box_latent, sampler.has_flow)
         generator = torch.Generator().manual_seed(view.index)
         occupancy = sampler.propose(completer.network_input(view), counts, generator,
                                     completer.box_temperature).numpy() > 0.5

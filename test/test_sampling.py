@@ -103,12 +103,17 @@ def test_bit_counts_agree_with_and_without_numpy_bitwise_count():
 
 
 def test_config_checks_and_proposal_counts():
-    config = CheckedSamplerConfig()
+    config = CheckedSamplerConfig(source_shares=(0.4, 0.2, 0.1, 0.3))
     counts = config.proposal_counts(20, has_box=True)
-    assert sum(counts.values()) == 200 and tuple(counts) == SOURCES and min(counts.values()) > 0
-    assert config.proposal_counts(20, has_box=False) == {"posterior": 200, "widened": 0, "prior_box": 0}
+    assert counts == {"posterior": 80, "widened": 40, "prior_box": 20, "turned_box": 60} and tuple(counts) == SOURCES
+    # Without its flow (an old export) there is no box to turn: that share comes from the prior's box codes.
+    assert config.proposal_counts(20, has_box=True, has_flow=False) == {"posterior": 80, "widened": 40,
+                                                                         "prior_box": 80, "turned_box": 0}
+    assert config.proposal_counts(20, has_box=False) == {"posterior": 200, "widened": 0, "prior_box": 0,
+                                                         "turned_box": 0}
     assert sum(CheckedSamplerConfig(max_proposals=50).proposal_counts(20, True).values()) == 50
-    for bad in ({"proposals_per_sample": 0}, {"source_shares": (0.0, 0.0, 0.0)}, {"delta": -0.01},
+    for bad in ({"proposals_per_sample": 0}, {"source_shares": (0.0, 0.0, 0.0, 0.0)}, {"delta": -0.01},
+                {"source_shares": (0.4, 0.2, 0.4)}, {"turned_rest_low": 1.5},
                 {"max_missed_fraction": 1.0}, {"widened_temperature": float("nan")}, {"max_free_voxels": -1}):
         with pytest.raises(ValueError):
             CheckedSamplerConfig(**bad)
@@ -167,7 +172,46 @@ def test_checked_sampler_refuses_models_without_a_latent_and_bare_inputs():
     with pytest.raises(CompletionInputError, match="num_samples"):
         sampler.complete(SlabObservation(), num_samples=0)
     counts = sampler.complete(SlabObservation(), num_samples=2, seed=0).accepted_by_source
-    assert counts["widened"] == 0 and counts["prior_box"] == 0  # a VAE has no box part: posterior only
+    assert counts["widened"] == counts["prior_box"] == counts["turned_box"] == 0  # a VAE has no box: posterior only
+
+
+def test_turned_box_codes_turn_the_box_about_the_vertical_axis():
+    model = tiny_model("pssnet", N).eval()
+    torch.manual_seed(1)
+    codes = torch.randn(3, model.box_dim) * 0.5
+
+    def corners(c: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return (model.flow.inverse(c) * model.config.box_scale + model.config.box_offset).view(-1, 8, 3)
+
+    axis = torch.tensor([7.0, 9.0])
+    quarter = model.turn_box_codes(codes, axis, torch.full((3,), torch.pi / 2))
+    before, after = corners(codes), corners(quarter)
+    # x, y turned a quarter about the axis: (dx, dy) -> (-dy, dx); heights unchanged.
+    torch.testing.assert_close(after[..., 0] - axis[0], -(before[..., 1] - axis[1]), atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(after[..., 1] - axis[1], before[..., 0] - axis[0], atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(after[..., 2], before[..., 2], atol=1e-3, rtol=1e-3)
+    torch.testing.assert_close(model.turn_box_codes(codes, axis, torch.zeros(3)), codes, atol=1e-3, rtol=1e-3)
+    model.train()
+    model.turn_box_codes(codes, axis, torch.ones(3))
+    assert model.flow.training  # the flow's mode is left as it was (it inverts in eval mode)
+
+
+def test_checked_sampler_turns_boxes_only_with_the_flow():
+    observation = SlabObservation()
+    config = CheckedSamplerConfig(proposals_per_sample=10, source_shares=(0.5, 0.0, 0.0, 0.5),
+                                  max_missed_fraction=0.9, max_free_voxels=10_000)
+    old_export = tiny_completer()
+    old_export.info["missing_modules"] = ["flow."]  # as the load of an export written without the flow says
+    for completer, drawn in ((tiny_completer(), "turned_box"), (old_export, "prior_box")):
+        sampler = CheckedSampler(completer, config)
+        assert sampler.has_flow == (drawn == "turned_box")
+        counts = config.proposal_counts(2, sampler.has_box_latent, sampler.has_flow)
+        assert counts[drawn] == 10 and counts["posterior"] == 10 and sum(counts.values()) == 20
+        result = sampler.complete(observation, num_samples=2, seed=0)
+        assert result.proposals == 20 and np.isfinite(result.probabilities).all()
+        again = sampler.complete(observation, num_samples=2, seed=0)
+        np.testing.assert_array_equal(again.probabilities, result.probabilities)
 
 
 def test_grasp_scores_are_the_weighted_fraction_of_completions():

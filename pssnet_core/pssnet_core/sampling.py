@@ -5,10 +5,17 @@ Why: the posterior of a VAE (PSSNet included) is trained to explain the training
 shape a view allows; on objects made elsewhere its samples bunch up (handles drawn near straight behind, boxes
 behind a slit all narrower than the truth). The view itself says what is allowed, so the sampler asks it:
 
-1. **Propose** ``proposals_per_sample`` x the requested number of latents from three sources: the trained
+1. **Propose** ``proposals_per_sample`` x the requested number of latents from up to four sources: the trained
    posterior, the posterior with its box dims widened (``widened_temperature``), and, for models with a box part
    (PSSNet), box codes from the prior N(0, I) of the flow space (every training box width and handle azimuth)
-   with the rest of the latent from the posterior. All are decoded in one batch.
+   with the rest of the latent from the posterior, and **turned boxes**: posterior draws whose box is turned about
+   the vertical axis through the posterior mode's centre by a uniform angle (a mug's handle to every azimuth, its
+   body where it was), with the rest of the latent scaled towards the prior's mean by a factor drawn from
+   [``turned_rest_low``, 1]. Why turned boxes and a weaker rest: a prior box code also redraws the body's box,
+   so most prior proposals whose handle lies where the view allows fail the check on their bodies; and the rest
+   of the posterior latent, which encodes what the camera saw, vetoes handles the box puts far from straight
+   behind (``results/reach/README.md``). Turning needs the flow (exports keep it; models exported without it
+   draw those proposals from the prior instead). All are decoded in one batch.
 2. **Check** each proposal against the observation with the observation model of Alg. 1 on the grid
    (:class:`GridCheck`): a proposal is rejected when it leaves observed surface unexplained (no occupied voxel
    within ``delta`` behind an observed voxel, along its camera ray: the expected depth would differ by more than
@@ -44,7 +51,7 @@ from pssnet_core.spread import BitRows, farthest_point_selection
 SAMPLERS: tuple[str, ...] = ("posterior", "checked")
 
 # Proposal sources, in the order their latents are drawn and decoded.
-SOURCES: tuple[str, ...] = ("posterior", "widened", "prior_box")
+SOURCES: tuple[str, ...] = ("posterior", "widened", "prior_box", "turned_box")
 
 
 @dataclass(frozen=True)
@@ -53,9 +60,11 @@ class CheckedSamplerConfig:
 
     Attributes:
         proposals_per_sample: proposals decoded per requested sample (the issue asks for >= 10).
-        source_shares: shares of the proposals drawn from (posterior, widened posterior, prior box codes);
-            models without a box part draw every proposal from the posterior.
+        source_shares: shares of the proposals drawn from (posterior, widened posterior, prior box codes, turned
+            boxes); models without a box part draw every proposal from the posterior, models without their flow
+            draw the turned share from the prior box codes.
         widened_temperature: factor on the box dims' posterior sigma of the widened source.
+        turned_rest_low: the turned boxes' rest of the latent is scaled by a factor drawn from [this, 1].
         delta: depth tolerance of the check (metres), Alg. 1's delta.
         max_missed_fraction: observed voxels a proposal may leave unexplained (the silhouette's share).
         missed_margin: a proposal may also leave unexplained this much more than the median posterior proposal
@@ -65,8 +74,9 @@ class CheckedSamplerConfig:
     """
 
     proposals_per_sample: int = 10
-    source_shares: tuple[float, float, float] = (0.4, 0.2, 0.4)
+    source_shares: tuple[float, float, float, float] = (0.4, 0.2, 0.0, 0.4)
     widened_temperature: float = 2.0
+    turned_rest_low: float = 0.5
     delta: float = 0.01
     max_missed_fraction: float = 0.02
     missed_margin: float = 0.0
@@ -77,10 +87,13 @@ class CheckedSamplerConfig:
         if not 1 <= self.proposals_per_sample <= 100:
             raise ValueError(f"proposals_per_sample must lie in [1, 100], got {self.proposals_per_sample}")
         shares = np.asarray(self.source_shares, dtype=np.float64)
-        if shares.shape != (3,) or not np.all(np.isfinite(shares)) or shares.min() < 0 or shares.sum() <= 0:
-            raise ValueError(f"source_shares must be 3 non-negative numbers, not all zero, got {self.source_shares}")
+        if shares.shape != (len(SOURCES),) or not np.all(np.isfinite(shares)) or shares.min() < 0 or shares.sum() <= 0:
+            raise ValueError(f"source_shares must be {len(SOURCES)} non-negative numbers ({', '.join(SOURCES)}), not "
+                             f"all zero, got {self.source_shares}")
         if not (math.isfinite(self.widened_temperature) and 0 < self.widened_temperature <= 10):
             raise ValueError(f"widened_temperature must lie in (0, 10], got {self.widened_temperature}")
+        if not 0.0 <= self.turned_rest_low <= 1.0:
+            raise ValueError(f"turned_rest_low must lie in [0, 1], got {self.turned_rest_low}")
         if not (math.isfinite(self.delta) and 0 < self.delta <= 0.2):
             raise ValueError(f"delta must lie in (0, 0.2] metres, got {self.delta}")
         if not (0.0 <= self.max_missed_fraction < 1.0 and 0.0 <= self.missed_margin < 1.0):
@@ -99,12 +112,14 @@ class CheckedSamplerConfig:
             limit = max(limit, float(np.median(missed[posterior])) + self.missed_margin)
         return (missed <= limit) & (free <= self.max_free_voxels)
 
-    def proposal_counts(self, num_samples: int, has_box: bool) -> dict[str, int]:
+    def proposal_counts(self, num_samples: int, has_box: bool, has_flow: bool = True) -> dict[str, int]:
         """Proposals per source for ``num_samples`` requested samples (at least ``num_samples`` in all)."""
         total = min(max(num_samples * self.proposals_per_sample, num_samples), max(self.max_proposals, num_samples))
         shares = np.asarray(self.source_shares, dtype=np.float64)
         if not has_box:
-            shares = np.array([1.0, 0.0, 0.0])
+            shares = np.eye(len(SOURCES))[0]
+        elif not has_flow:  # no boxes to turn: the turned share is drawn from the prior's box codes
+            shares = shares + shares[3] * np.eye(len(SOURCES))[2] - shares[3] * np.eye(len(SOURCES))[3]
         shares = shares / shares.sum()
         counts = np.floor(shares * total).astype(int)
         counts[int(np.argmax(shares))] += total - int(counts.sum())
@@ -226,6 +241,12 @@ class CheckedSampler:
         return self.completer.has_box_latent
 
     @property
+    def has_flow(self) -> bool:
+        """Whether the model's box codes can be turned: a box part and the flow it was trained against (models
+        exported before exports kept the flow load without it)."""
+        return self.has_box_latent and "flow." not in self.completer.info.get("missing_modules", ())
+
+    @property
     def grid_size(self) -> int:
         return int(self.completer.grid_size)
 
@@ -262,8 +283,27 @@ class CheckedSampler:
                 z = model.sample_latents(mu, logvar, counts["prior_box"], generator, 1.0)
                 z[:, :box] = torch.randn(counts["prior_box"], box, generator=generator).to(z)
                 latents.append(z)
+            if counts["turned_box"]:
+                latents.append(self._turned_latents(mu, logvar, counts["turned_box"], generator, box_temperature))
             probs = model.decode_probabilities(torch.cat(latents))
         return probs.reshape(probs.shape[0], -1).float()
+
+    def _turned_latents(self, mu: torch.Tensor, logvar: torch.Tensor, count: int, generator: torch.Generator,
+                        box_temperature: float) -> torch.Tensor:
+        """Posterior draws with the box turned about the vertical axis through the centre (grid x, y) of the
+        posterior mode's shape by uniform angles, the rest of the latent scaled by U(``turned_rest_low``, 1)."""
+        model = self.completer.model
+        box = model.box_dim
+        mode = model.decode_probabilities(model.mode_latent(mu, logvar))[0, 0] > 0.5
+        occupied = torch.nonzero(mode).float() + 0.5
+        # An empty mode (an untrained model) turns about the grid's centre.
+        axis = occupied[:, :2].mean(0) if len(occupied) else torch.full((2,), mode.shape[0] / 2.0)
+        z = model.sample_latents(mu, logvar, count, generator, box_temperature)
+        angles = (2 * torch.rand(count, generator=generator) - 1) * math.pi
+        z[:, :box] = model.turn_box_codes(z[:, :box], axis, angles).to(z)
+        low = self.sampler_config.turned_rest_low
+        z[:, box:] *= low + (1 - low) * torch.rand(count, 1, generator=generator).to(z)
+        return z
 
     def complete(self, observation: Any, num_samples: int = 20, seed: int = 0,
                  box_temperature: float | None = None) -> CheckedResult:
@@ -277,7 +317,7 @@ class CheckedSampler:
         known_occupied, known_free, pose = _grid_parts(observation)
         x = self.completer.network_input(observation)
         temperature = self.completer.box_temperature if box_temperature is None else box_temperature
-        counts = self.sampler_config.proposal_counts(int(num_samples), self.has_box_latent)
+        counts = self.sampler_config.proposal_counts(int(num_samples), self.has_box_latent, self.has_flow)
         generator = torch.Generator().manual_seed(int(seed))
         t0 = time.perf_counter()
         probs = self.propose(x, counts, generator, float(temperature)).cpu().numpy()

@@ -183,11 +183,30 @@ class PSSNet(VAE):
         return z
 
     def reconstruct(self, x: torch.Tensor) -> torch.Tensor:
-        mu, logvar = self.encode(self.check_input(x))
-        if self.box_head is not None:
-            # The heaviest component's centre: the mixture's mean can be the code of no box at all.
-            mu = torch.cat([self.box_head.mode(torch.cat([mu, logvar], 1)), mu[:, self.box_dim:]], 1)
-        return self.decode(mu)
+        return self.decode(self.mode_latent(*self.encode(self.check_input(x))))
+
+    def mode_latent(self, mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+        """The posterior's most likely latent: ``mu``, with the box part at the heaviest mixture component's centre
+        (the mixture's mean can be the code of no box at all)."""
+        if self.box_head is None:
+            return mu
+        return torch.cat([self.box_head.mode(torch.cat([mu, logvar], 1)), mu[:, self.box_dim:]], 1)
+
+    def turn_box_codes(self, codes: torch.Tensor, axis: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
+        """The box codes of the same boxes turned about the grid's vertical axis (z: the grid is gravity-aligned)
+        through ``axis`` (grid x, y in voxels) by ``angles`` (radians, one per code), through the flow: boxes
+        out of it, turned, back in. Needs the flow the decoder was trained against (exports keep it)."""
+        was_training = self.flow.training
+        self.flow.eval()  # the batch norms invert with their running statistics
+        # fp32 under any autocast: a bf16 coupling stack would move the boxes by more than the turn's precision.
+        with torch.no_grad(), fp32_region(codes.device):
+            corners = (self.flow.inverse(codes.float()) * self.config.box_scale + self.config.box_offset).view(-1, 8, 3)
+            cos, sin = torch.cos(angles)[:, None], torch.sin(angles)[:, None]
+            dx, dy = corners[..., 0] - axis[0], corners[..., 1] - axis[1]
+            turned = torch.stack([axis[0] + cos * dx - sin * dy, axis[1] + sin * dx + cos * dy, corners[..., 2]], -1)
+            codes = self.embed_box(self.normalise_box(turned.reshape(len(codes), -1)))
+        self.flow.train(was_training)
+        return codes
 
     def normalise_box(self, box: torch.Tensor) -> torch.Tensor:
         """Grid coordinates (0..N) -> roughly [-1, 1]."""
