@@ -119,7 +119,9 @@ class CheckedSamplerConfig:
         if not has_box:
             shares = np.eye(len(SOURCES))[0]
         elif not has_flow:  # no boxes to turn: the turned share is drawn from the prior's box codes
-            shares = shares + shares[3] * np.eye(len(SOURCES))[2] - shares[3] * np.eye(len(SOURCES))[3]
+            shares = shares.copy()
+            shares[SOURCES.index("prior_box")] += shares[SOURCES.index("turned_box")]
+            shares[SOURCES.index("turned_box")] = 0.0
         shares = shares / shares.sum()
         counts = np.floor(shares * total).astype(int)
         counts[int(np.argmax(shares))] += total - int(counts.sum())
