@@ -100,7 +100,7 @@ def main() -> None:
 
             z = model.sample_latents(mu, logvar, args.samples, generator, 1.0)
             rates["posterior samples"].append(float(np.isfinite(decode_handles(model, z, view, geometry)).mean()))
-            sampled = model.flow.inverse(z[:, :k]) * model.config.box_scale + model.config.box_offset
+            sampled = model.box_of_code(z[:, :k])
             snapped = np.stack([nearest_cuboid(c) for c in sampled.reshape(-1, 8, 3).numpy()])
             snapped_codes = model.embed_box(model.normalise_box(torch.from_numpy(snapped.reshape(-1, 24)).float()))
             z_snapped = torch.cat([snapped_codes, z[:, k:]], 1)

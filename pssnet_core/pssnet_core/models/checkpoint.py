@@ -140,6 +140,10 @@ def _model_from_state(config: ModelConfig, state: dict[str, torch.Tensor], infer
     return model.eval(), absent
 
 
+#: keys :func:`load_verified` adds to a checkpoint's ``extra`` about the file itself; a checkpoint saved from a loaded
+#: one must not carry them over (the new file's own are written and read again).
+LOAD_FACTS: tuple[str, ...] = ("inference_only", "storage_dtype", "missing_modules")
+
 @dataclass(frozen=True)
 class LoadedCheckpoint:
     """A loaded checkpoint: the model (eval mode, float32 weights), its config, ``extra`` (which also carries
@@ -186,6 +190,7 @@ def load_verified(path: str | Path, map_location: str | torch.device = "cpu", *,
                                   f"{' '.join(str(error).split())}") from error
     model.to(map_location)
     extra = dict(payload.get("extra") or {})
+    # What the load says of the file (LOAD_FACTS), beside what was saved.
     extra.setdefault("inference_only", inference_only)
     extra.setdefault("storage_dtype", payload.get("storage_dtype", "float32"))
     extra["missing_modules"] = absent  # what the file lacks, e.g. ["flow."] (freshly initialised in the model)
@@ -214,8 +219,7 @@ def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
     from pssnet_core.models.base import ModelInputError, check_box_temperature
 
     model, config, extra = load_checkpoint(src)
-    kept = {k: v for k, v in extra.items()
-            if k not in ("optimizers", "rng", "inference_only", "storage_dtype", "missing_modules")}
+    kept = {k: v for k, v in extra.items() if k not in ("optimizers", "rng", *LOAD_FACTS)}
     kept["exported_from"] = str(src)
     if box_temperature is not None:
         try:

@@ -196,17 +196,23 @@ class PSSNet(VAE):
         """The box codes of the same boxes turned about the grid's vertical axis (z: the grid is gravity-aligned)
         through ``axis`` (grid x, y in voxels) by ``angles`` (radians, one per code), through the flow: boxes
         out of it, turned, back in. Needs the flow the decoder was trained against (exports keep it)."""
-        was_training = self.flow.training
-        self.flow.eval()  # the batch norms invert with their running statistics
         # fp32 under any autocast: a bf16 coupling stack would move the boxes by more than the turn's precision.
         with torch.no_grad(), fp32_region(codes.device):
-            corners = (self.flow.inverse(codes.float()) * self.config.box_scale + self.config.box_offset).view(-1, 8, 3)
+            corners = self.box_of_code(codes).view(-1, 8, 3)
             cos, sin = torch.cos(angles)[:, None], torch.sin(angles)[:, None]
             dx, dy = corners[..., 0] - axis[0], corners[..., 1] - axis[1]
             turned = torch.stack([axis[0] + cos * dx - sin * dy, axis[1] + sin * dx + cos * dy, corners[..., 2]], -1)
-            codes = self.embed_box(self.normalise_box(turned.reshape(len(codes), -1)))
+            return self.embed_box(self.normalise_box(turned.reshape(len(codes), -1)))
+
+    def box_of_code(self, codes: torch.Tensor) -> torch.Tensor:
+        """(B, box_dim) grid coordinates of the boxes whose codes are ``codes``: the inverse of
+        ``embed_box(normalise_box(box))``, with running batch-norm statistics, no gradient."""
+        was_training = self.flow.training
+        self.flow.eval()  # the batch norms invert with their running statistics
+        with torch.no_grad():
+            box = self.flow.inverse(codes.float()) * self.config.box_scale + self.config.box_offset
         self.flow.train(was_training)
-        return codes
+        return box
 
     def normalise_box(self, box: torch.Tensor) -> torch.Tensor:
         """Grid coordinates (0..N) -> roughly [-1, 1]."""

@@ -27,7 +27,7 @@ import torch
 from pssnet_core.data.store import DatasetReader
 from pssnet_core.models import build_model
 from pssnet_core.models.base import resolve_precision
-from pssnet_core.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from pssnet_core.models.checkpoint import LOAD_FACTS, CheckpointError, load_checkpoint, save_checkpoint
 from pssnet_core.models.vae import PSSNet
 
 
@@ -148,8 +148,7 @@ def fit_box_head(config: BoxHeadFitConfig, log: Any = print) -> dict[str, Any]:
         raise RuntimeError(f"the box head's validation NLL is {mixture_val}: the fit diverged")
     log(f"validation NLL of the true box codes: mixture {mixture_val:.2f}, the Gaussian it replaces "
         f"{gaussian_val:.2f} nats per box")
-    kept = {k: v for k, v in extra.items() if k not in ("optimizers", "rng", "train_state", "inference_only",
-                                                   "storage_dtype", "missing_modules")}
+    kept = {k: v for k, v in extra.items() if k not in ("optimizers", "rng", "train_state", *LOAD_FACTS)}
     kept["box_head_fit"] = summary
     save_checkpoint(Path(config.out), model, new_config, kept)
     return summary
