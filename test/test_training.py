@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+import zipfile
 from collections.abc import Iterator
 
 import numpy as np
@@ -90,6 +91,14 @@ def test_checkpoint_fp16_and_inference_only_export(tmp_path):
     loaded2, _, _ = load_checkpoint(save_checkpoint(tmp_path / "h2.pt", model, half=True))
     torch.testing.assert_close(loaded2.flow.layers[0].net[0].weight, model.flow.layers[0].net[0].weight,
                                atol=1e-3, rtol=1e-3)
+    # The export's archive is deflated (the shipped model's 15 MB bound) and loads the same weights as the same
+    # checkpoint stored plainly.
+    plain = save_checkpoint(tmp_path / "plain.pt", loaded, half=True, inference_only=True)
+    with zipfile.ZipFile(half) as archive:
+        assert {m.compress_type for m in archive.infolist()} == {zipfile.ZIP_DEFLATED}
+    assert half.stat().st_size < plain.stat().st_size
+    for key, value in read_checkpoint(plain)["state_dict"].items():
+        assert torch.equal(read_checkpoint(half)["state_dict"][key], value), key
 
 
 def test_missing_and_corrupt_checkpoints_raise_clear_errors(tmp_path):

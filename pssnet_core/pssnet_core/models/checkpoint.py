@@ -21,6 +21,7 @@ fills the grid (a randomly initialised one does).
 from __future__ import annotations
 
 import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,7 +54,7 @@ class CheckpointError(ValueError):
 
 def save_checkpoint(path: str | Path, model: CompletionModel, config: ModelConfig | None = None,
                     extra: dict[str, Any] | None = None, *, half: bool = False,
-                    inference_only: bool = False) -> Path:
+                    inference_only: bool = False, deflate: bool = False) -> Path:
     """Writes a checkpoint atomically (temporary file, then rename).
 
     Args:
@@ -64,6 +65,7 @@ def save_checkpoint(path: str | Path, model: CompletionModel, config: ModelConfi
         half: store floating-point weights as float16 (half the size; loaded back as float32).
         inference_only: drop the training-only modules (``model.training_only_prefixes``: GAN discriminators);
             such a checkpoint samples but cannot resume training.
+        deflate: compress the archive's members (see :func:`_deflate_archive`).
 
     Returns:
         The path written.
@@ -86,8 +88,24 @@ def save_checkpoint(path: str | Path, model: CompletionModel, config: ModelConfi
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     torch.save(payload, tmp)
+    if deflate:
+        _deflate_archive(tmp)
     os.replace(tmp, path)
     return path
+
+
+def _deflate_archive(path: Path) -> None:
+    """Re-packs the zip archive ``torch.save`` wrote with its members deflated, in place.
+
+    ``torch.save`` stores members uncompressed (so that they can be memory-mapped); ``torch.load`` reads deflated
+    ones too. fp16 weights shrink by ~8 %: what keeps the shipped model, flow included, within the 15 MB a
+    committed checkpoint may take. No checkpoint here is memory-mapped.
+    """
+    packed = path.with_name(path.name + ".deflated")
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(packed, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as out:
+        for member in source.infolist():
+            out.writestr(member.filename, source.read(member.filename))
+    os.replace(packed, path)
 
 
 def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -210,7 +228,8 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
 
 def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
                       inference_only: bool = True, box_temperature: float | None = None) -> Path:
-    """Compact copy of a checkpoint for shipping: fp16 weights, training-only modules and state dropped.
+    """Compact copy of a checkpoint for shipping: fp16 weights, training-only modules and state dropped, the
+    archive deflated.
 
     The training metadata in ``extra`` (metrics, data, duration) is kept; optimiser states are not.
     ``box_temperature`` records the temperature calibrated for this model (``extra["box_temperature"]``), the
@@ -226,4 +245,4 @@ def export_checkpoint(src: str | Path, dst: str | Path, *, half: bool = True,
             kept["box_temperature"] = check_box_temperature(box_temperature, model.has_box_latent)
         except ModelInputError as error:
             raise CheckpointError(str(error)) from error
-    return save_checkpoint(dst, model, config, kept, half=half, inference_only=inference_only)
+    return save_checkpoint(dst, model, config, kept, half=half, inference_only=inference_only, deflate=True)
