@@ -6,8 +6,9 @@ calls: exit code 2 when it raises) and, if that succeeds, completes a rendered h
 service call). The outcome is ``refused at load``, ``refused at the first call`` (a ValueError: the node answers
 ``success: false``) or ``SERVED`` (a success: what must never happen to a corrupt model). Corruptions:
 
-- bytes of the file's weight storage (inside the zip archive, where ``torch.load`` checks nothing): 10 flipped
-  bits, 4 KB zeroed, 4 KB of random bytes, each at ``--trials`` random places;
+- bytes of the file's weight storage as archived (raw, or deflated in an export; ``torch.load`` checks no CRC,
+  so a corrupt deflated member mostly inflates to wrong weights): 10 flipped bits, 4 KB zeroed, 4 KB of random
+  bytes, each at ``--trials`` random places;
 - weights edited in the stored state dict, the integrity record left as it was ("edited"), or the model saved
   again through ``save_checkpoint`` so that its record describes the corrupt weights ("re-saved"): one NaN
   weight, a NaN in the last layer, the output bias at -60000 or +inf, every weight of a freshly initialised model
@@ -54,15 +55,16 @@ class Outcome:
 
 
 def weight_storage(path: Path) -> list[tuple[int, int]]:
-    """(offset, length) in the file of each tensor storage: torch stores them uncompressed as zip members."""
+    """(offset, length) in the file of each tensor storage's bytes as archived: raw where ``torch.save`` stored them,
+    deflated in an export (``checkpoint._deflate_archive``)."""
     spans = []
     with zipfile.ZipFile(path) as archive, path.open("rb") as raw:
         for info in archive.infolist():
-            if "/data/" in info.filename and info.compress_type == zipfile.ZIP_STORED and info.file_size:
+            if "/data/" in info.filename and info.compress_size:
                 raw.seek(info.header_offset)
                 header = raw.read(30)
                 name_len, extra_len = struct.unpack("<HH", header[26:30])
-                spans.append((info.header_offset + 30 + name_len + extra_len, info.file_size))
+                spans.append((info.header_offset + 30 + name_len + extra_len, info.compress_size))
     return spans
 
 

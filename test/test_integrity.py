@@ -55,10 +55,18 @@ def test_every_save_records_digest_ranges_and_self_test_and_every_load_checks_th
 
 @pytest.mark.parametrize("kind", ["flip", "zero", "random"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_corrupt_bytes_in_the_weight_storage_are_refused(tiny, tmp_path, kind, seed):
-    path = copy_of(tiny, tmp_path)
+@pytest.mark.parametrize("archive", ["stored", "deflated"])
+def test_corrupt_bytes_in_the_weight_storage_are_refused(tiny, tmp_path, kind, seed, archive):
+    """In a training checkpoint (weights stored raw) and in an export (deflated), where a corrupt byte may also
+    leave the archive unreadable."""
+    if archive == "stored":
+        path = copy_of(tiny, tmp_path)
+    else:
+        path = export_checkpoint(tiny, tmp_path / "exported.pt")
     bench.edit_bytes(path, np.random.default_rng(seed), kind)
-    refused(path, r"is corrupt: (weights differ from those saved: SHA-256|weight \S+ (has \d+ NaN/inf|spans))")
+    unreadable = r"|is not a readable checkpoint \(corrupt or truncated\?\)" if archive == "deflated" else ""
+    refused(path, r"is corrupt: (weights differ from those saved: SHA-256|weight \S+ (has \d+ NaN/inf|spans))"
+            + unreadable)
 
 
 @pytest.mark.parametrize("name", ["one NaN weight", "NaN in the last layer", "output bias +inf"])
