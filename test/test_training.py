@@ -97,8 +97,9 @@ def test_checkpoint_fp16_and_inference_only_export(tmp_path):
     with zipfile.ZipFile(half) as archive:
         assert {m.compress_type for m in archive.infolist()} == {zipfile.ZIP_DEFLATED}
     assert half.stat().st_size < plain.stat().st_size
+    deflated_state = read_checkpoint(half)["state_dict"]
     for key, value in read_checkpoint(plain)["state_dict"].items():
-        assert torch.equal(read_checkpoint(half)["state_dict"][key], value), key
+        assert torch.equal(deflated_state[key], value), key
 
 
 def test_missing_and_corrupt_checkpoints_raise_clear_errors(tmp_path):

@@ -162,6 +162,7 @@ def _model_from_state(config: ModelConfig, state: dict[str, torch.Tensor], infer
 #: one must not carry them over (the new file's own are written and read again).
 LOAD_FACTS: tuple[str, ...] = ("inference_only", "storage_dtype", "missing_modules")
 
+
 @dataclass(frozen=True)
 class LoadedCheckpoint:
     """A loaded checkpoint: the model (eval mode, float32 weights), its config, ``extra`` (which also carries
