@@ -199,6 +199,8 @@ class PSSNet(VAE):
         # fp32 under any autocast: a bf16 coupling stack would move the boxes by more than the turn's precision.
         with torch.no_grad(), fp32_region(codes.device):
             corners = self.box_of_code(codes).view(-1, 8, 3)
+            # Angles drawn by a CPU generator turn codes on a GPU: everything meets on the codes' device.
+            axis, angles = axis.to(corners), angles.to(corners)
             cos, sin = torch.cos(angles)[:, None], torch.sin(angles)[:, None]
             dx, dy = corners[..., 0] - axis[0], corners[..., 1] - axis[1]
             turned = torch.stack([axis[0] + cos * dx - sin * dy, axis[1] + sin * dx + cos * dy, corners[..., 2]], -1)
