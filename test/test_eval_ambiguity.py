@@ -17,11 +17,19 @@ import pytest
 from pssnet_core.data.build import build
 from pssnet_core.data.scenes import ObjectScene, ground_truth_occupancy
 from pssnet_core.data.store import DatasetReader
-from pssnet_core.evaluation.ambiguity import AmbiguityConfig, arc_scores, extent_scores, run_ambiguity
+from pssnet_core.evaluation.ambiguity import (
+    AmbiguityConfig,
+    arc_composition,
+    arc_scores,
+    extent_scores,
+    run_ambiguity,
+)
 from pssnet_core.evaluation.ambiguity_report import ambiguity_report
 from pssnet_core.evaluation.ambiguity_sets import (
+    REJECTED,
     AmbiguityError,
     AmbiguityMeasure,
+    HandleArc,
     grid_x_extent,
     hidden_axis,
     mug_parts,
@@ -65,6 +73,21 @@ def test_arc_scores_wrap_around_and_degenerate_cases():
     assert math.isnan(arc_scores(np.array([0.0]), np.array([0.0, 10.0])).spread_ratio)  # one azimuth: no spread
     with pytest.raises(AmbiguityError, match="empty"):
         arc_scores(np.array([]), np.array([0.0]))
+
+
+def test_arc_composition_counts_handles_facing_the_camera_and_bounds_a_strict_sampler():
+    azimuths = np.arange(-180.0, 180.0, 5.0)
+    strict = np.abs(azimuths) <= 30  # behind the mug: -30..30 (13 azimuths)
+    wide = strict | (np.abs(azimuths) >= 170)  # and the handle facing the camera (at 180): 5 azimuths more
+    violations = np.stack([np.where(strict, 0, 5), np.where(wide, 0, REJECTED)], axis=1)
+    arc = HandleArc(index=0, identity="mug", deltas=(0.01, 0.04), azimuths_deg=azimuths, violations=violations,
+                    camera_azimuth_deg=180.0)
+    mix = arc_composition([arc, arc], 0.04, 0.01)
+    assert mix.views == 2
+    assert mix.facing_share == pytest.approx(5 / 18)  # 170..-170 lie within 45 deg of facing the camera
+    assert mix.strict_cover == pytest.approx(13 / 18)  # 15 deg of tolerance reach none of the facing azimuths
+    itself = arc_composition([arc], 0.01, 0.01)
+    assert itself.strict_cover == 1.0 and itself.facing_share == 0.0
 
 
 def test_extent_scores_by_hand():

@@ -100,6 +100,40 @@ def arc_scores(arc_deg: np.ndarray, sample_azimuths_deg: np.ndarray, tolerance_d
     return SpreadScores(coverage=coverage, precision=precision, spread_ratio=float(ratio), rate=rate)
 
 
+@dataclass(frozen=True)
+class ArcComposition:
+    """What one delta's plausible arcs hold beyond those of a stricter delta, over a set of views.
+
+    Why: Alg. 1 compares depths within delta, so at 4 cm a handle turned towards the camera, in front of the
+    body and in plain view, passes wherever it stands less than 4 cm proud of the body. A sampler whose samples
+    agree with the image at 1 cm cannot draw those handles, and its coverage of the 4 cm arc is bounded by how
+    much of it the 1 cm arc reaches within the coverage tolerance.
+
+    Attributes:
+        views: views with both arcs.
+        facing_share: mean share of the arc's azimuths within ``facing_deg`` of facing the camera.
+        strict_cover: mean coverage of the arc by the stricter delta's arc (:func:`arc_scores`): what a sampler
+            that drew a handle at every azimuth of the stricter arc, and nowhere else, would score.
+    """
+
+    views: int
+    facing_share: float
+    strict_cover: float
+
+
+def arc_composition(arcs: Sequence[HandleArc], delta: float, strict_delta: float, facing_deg: float = 45.0,
+                    tolerance_deg: float = 15.0) -> ArcComposition:
+    """:class:`ArcComposition` of the arcs at ``delta`` against those at ``strict_delta``."""
+    facing, cover = [], []
+    for arc in arcs:
+        wide, strict = arc.arc(delta), arc.arc(strict_delta)
+        if len(wide) == 0 or not math.isfinite(arc.camera_azimuth_deg):
+            continue
+        facing.append(float((circular_difference_deg(wide, arc.camera_azimuth_deg) <= facing_deg).mean()))
+        cover.append(arc_scores(wide, strict, tolerance_deg).coverage if len(strict) else 0.0)
+    return ArcComposition(views=len(facing), facing_share=nanmean(facing), strict_cover=nanmean(cover))
+
+
 def extent_scores(plausible: np.ndarray, sample_extents: np.ndarray, tolerance: float = 1.0,
                   margin: float = 1.0) -> SpreadScores:
     """Coverage, precision and spread ratio of sampled extents (NaN = empty sample) against the plausible ones.

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from pssnet_core.evaluation.ambiguity import AmbiguityResult, summarise_ambiguity
+from pssnet_core.evaluation.ambiguity import AmbiguityResult, arc_composition, summarise_ambiguity
 from pssnet_core.evaluation.ambiguity_plots import plot_handle_arcs, plot_slit_extents, plot_summary
 from pssnet_core.evaluation.ambiguity_sets import DEFAULT_DELTAS
 from pssnet_core.evaluation.experiment import Figure, Json, Markdown, Report, Table
@@ -64,6 +64,12 @@ def markdown_ambiguity(summary: Sequence[dict[str, Any]], result: AmbiguityResul
             lines.append("")
             lines.append(f"Arc width = mean number of plausible azimuths x {c.azimuth_step_deg:g} deg; the true "
                          f"mug passes in {truth:.0%} of the hidden views.")
+            if delta > min(c.deltas):
+                mix = arc_composition(list(arcs.values()), delta, min(c.deltas), tolerance_deg=c.arc_tolerance_deg)
+                lines.append(f"At this delta {_f(100 * mix.facing_share, 0)} % of the arc lies within 45 deg of the "
+                             "handle facing the camera (in front of the body, in view, less than delta proud of it); "
+                             f"a sampler drawing handles exactly over the {min(c.deltas) * 100:g} cm arc would score "
+                             f"arc coverage {_f(mix.strict_cover)} here ({mix.views} views).")
         if ranges:
             truth = np.mean([r.truth_accepted(delta) for r in ranges.values()])
             lines.append(f"Extents are means over views of each view's min/max; the true box passes in {truth:.0%} "
