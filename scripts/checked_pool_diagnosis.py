@@ -15,7 +15,6 @@ Usage (results/reach/README.md):
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,16 +40,11 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=40, help="hidden-handle views, evenly spaced")
     parser.add_argument("--samples", type=int, default=20)
     parser.add_argument("--delta", type=float, default=0.04, help="the arc's observation-model tolerance (m)")
-    parser.add_argument("--check-delta", type=float, default=None, help="the check's tolerance (m; default the node's)")
-    parser.add_argument("--selection", default=None, help="the selection's distance (default the node's)")
-    parser.add_argument("--turned-rest-low", type=float, default=None, help="(default the node's)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     completer = Completer.from_checkpoint(args.checkpoint, threads=1)
-    config = CheckedSamplerConfig()
-    config = replace(config, delta=args.check_delta or config.delta, selection=args.selection or config.selection,
-                     turned_rest_low=config.turned_rest_low if args.turned_rest_low is None else args.turned_rest_low)
-    sampler = CheckedSampler(completer, config)
+    sampler = CheckedSampler(completer)
+    config: CheckedSamplerConfig = sampler.sampler_config
     mugs = AmbiguityTestSet(find_test_set(args.data, args.set), False)
     geometries = handle_geometries(v.identity for v in mugs.views)
     hidden = [v for v in mugs.views if v.identity in geometries and v.meta.get("handle_visible") is False]
@@ -75,9 +69,7 @@ def main() -> None:
         if not len(accepted):
             none_accepted += 1
             continue
-        rows = config.selection_rows(occupancy[accepted].reshape(-1, n, n, n), packed.subset(accepted),
-                                     view.grid_pose.voxel_size)
-        picked, _ = farthest_point_selection(rows, args.samples)
+        picked, _ = farthest_point_selection(packed.subset(accepted), args.samples)
         azimuths = handle_azimuths(occupancy.reshape(-1, n, n, n), view.grid_pose, view.object_pose,
                                    geometries[view.identity])
         arc = arcs[view.index].arc(args.delta)

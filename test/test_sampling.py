@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from scipy import ndimage
 from test_models_helpers import tiny_model
 
 from pssnet_core.geometry import GridPose
@@ -20,13 +19,7 @@ from pssnet_core.sampling import (
     CheckedSamplerConfig,
     GridCheck,
 )
-from pssnet_core.spread import (
-    BitRows,
-    MarginRows,
-    farthest_point_selection,
-    row_bit_counts,
-    row_bit_counts_portable,
-)
+from pssnet_core.spread import BitRows, farthest_point_selection, row_bit_counts, row_bit_counts_portable
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 N = 16
@@ -95,43 +88,6 @@ def test_packed_jaccard_and_farthest_point_selection_with_cell_weights():
     assert len(farthest_point_selection(copies, 3)[0]) == 1  # identical grids: nothing more to spread over
 
 
-@pytest.mark.parametrize("n", [13, 32, 64])
-def test_margin_rows_count_voxels_beyond_a_cube_dilation(n):
-    rng = np.random.default_rng(n)
-    grids = rng.random((3, n, n, n)) < 0.01
-    grids[0, 0, 0, 0] = grids[0, -1, -1, -1] = True  # corners: the cube is cut by the grid's faces
-    rows = MarginRows.pack(grids, 2)
-    cube = np.ones((1, 5, 5, 5), dtype=bool)
-    beyond = ~ndimage.binary_dilation(grids, structure=cube)
-    for i in range(3):
-        expected = [(grids[j] & beyond[i]).sum() + (grids[i] & beyond[j]).sum() for j in range(3)]
-        jaccard = BitRows.pack(grids).jaccard_to(i)
-        np.testing.assert_allclose(rows.distance_to(i), np.asarray(expected) + jaccard)
-    with pytest.raises(ValueError, match="at most 64"):
-        MarginRows.pack(np.zeros((1, 65, 65, 65), dtype=bool), 1)
-
-
-def test_margin_distance_spreads_handles_where_jaccard_spreads_bodies():
-    """Mugs seen from above as (32, 32, 1) slabs: a thick body and a thin handle. Jaccard calls the body one voxel
-    wider the farthest; the margin distance calls the handle turned to the other side the farthest."""
-    def mug(body_radius: int, handle_side: int) -> np.ndarray:
-        grid = np.zeros((32, 32, 1), dtype=bool)
-        x, y = np.mgrid[:32, :32]
-        grid[..., 0] = (x - 16) ** 2 + (y - 16) ** 2 <= body_radius ** 2
-        grid[16 + handle_side * np.arange(body_radius + 1, body_radius + 5), 16, 0] = True  # 4 voxels long
-        return grid
-
-    grids = np.stack([mug(7, 1), mug(8, 1), mug(7, -1)])
-    assert BitRows.pack(grids).jaccard_to(0)[1] > BitRows.pack(grids).jaccard_to(0)[2]
-    rows = MarginRows.pack(grids, 1)
-    distance = rows.distance_to(0)
-    assert distance[0] == 0.0
-    assert distance[2] > 5 > distance[1]  # both handles beyond the margin of each other; the wider body within it
-    picked, cell = farthest_point_selection(rows, 2)
-    assert picked.tolist() == [0, 2] and cell.tolist() == [0, 0, 1]
-    np.testing.assert_array_equal(rows.subset(np.array([2, 0])).distance_to(1), rows.distance_to(0)[[2, 0]])
-
-
 def test_bit_counts_agree_with_and_without_numpy_bitwise_count():
     """numpy 1.26 (Ubuntu 24.04, apt ROS 2 Jazzy) has no np.bitwise_count: the portable popcount counts the same."""
     rng = np.random.default_rng(1)
@@ -158,8 +114,7 @@ def test_config_checks_and_proposal_counts():
     assert sum(CheckedSamplerConfig(max_proposals=50).proposal_counts(20, True).values()) == 50
     for bad in ({"proposals_per_sample": 0}, {"source_shares": (0.0, 0.0, 0.0, 0.0)}, {"delta": -0.01},
                 {"source_shares": (0.4, 0.2, 0.4)}, {"turned_rest_low": 1.5},
-                {"max_missed_fraction": 1.0}, {"widened_temperature": float("nan")}, {"max_free_voxels": -1},
-                {"selection": "chamfer"}, {"selection_margin": 0.0}):
+                {"max_missed_fraction": 1.0}, {"widened_temperature": float("nan")}, {"max_free_voxels": -1}):
         with pytest.raises(ValueError):
             CheckedSamplerConfig(**bad)
 

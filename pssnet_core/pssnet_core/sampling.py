@@ -22,11 +22,9 @@ behind a slit all narrower than the truth). The view itself says what is allowed
    delta) on more than ``max_missed_fraction`` of the observed voxels (silhouette voxels are where a sub-voxel
    shift decides, the grid's analogue of Alg. 1's unreliable pixels), or when it occupies more than
    ``max_free_voxels`` voxels lying more than ``delta`` in front of what the camera saw (it saw through them).
-3. **Select** the requested number among the accepted proposals by farthest-point selection, starting from the
-   first accepted posterior proposal, on the voxels each proposal has beyond ``selection_margin`` of the other
-   (then their Jaccard distance, 1 - IoU; :class:`pssnet_core.spread.MarginRows`: a handle elsewhere counts
-   more than a body a voxel wider, which plain Jaccard ranks first); each selected sample's **weight** is the
-   share of accepted proposals nearest to it (sums to 1), which the grasp score uses.
+3. **Select** the requested number among the accepted proposals by farthest-point selection on the Jaccard
+   distance of their occupancy (1 - IoU), starting from the first accepted posterior proposal; each selected
+   sample's **weight** is the share of accepted proposals nearest to it (sums to 1), which the grasp score uses.
 
 When fewer proposals are accepted than requested, the accepted ones are repeated (their weight split among the
 copies); when none is, the least-violating proposals are returned and the result's ``note`` says so.
@@ -48,15 +46,12 @@ import torch
 
 from pssnet_core.geometry import GridPose
 from pssnet_core.inference import CompletionInputError, CompletionResult
-from pssnet_core.spread import BitRows, MarginRows, farthest_point_selection
+from pssnet_core.spread import BitRows, farthest_point_selection
 
 SAMPLERS: tuple[str, ...] = ("posterior", "checked")
 
 # Proposal sources, in the order their latents are drawn and decoded.
 SOURCES: tuple[str, ...] = ("posterior", "widened", "prior_box", "turned_box")
-
-# Distances the selection spreads the returned samples by (see :class:`pssnet_core.spread.MarginRows`).
-SELECTIONS: tuple[str, ...] = ("jaccard", "margin")
 
 
 @dataclass(frozen=True)
@@ -76,9 +71,6 @@ class CheckedSamplerConfig:
             (the model's own accuracy on this view); the larger of the two limits applies.
         max_free_voxels: voxels a proposal may occupy deeper than ``delta`` inside seen-through space.
         max_proposals: upper bound on proposals per call (memory: one float32 grid each).
-        selection: the distance of the farthest-point selection: "jaccard" (1 - IoU) or "margin" (voxels each
-            proposal has beyond ``selection_margin`` of the other, then Jaccard).
-        selection_margin: the margin of the "margin" distance, metres (rounded to whole voxels, at least one).
     """
 
     proposals_per_sample: int = 10
@@ -90,8 +82,6 @@ class CheckedSamplerConfig:
     missed_margin: float = 0.0
     max_free_voxels: int = 2
     max_proposals: int = 2000
-    selection: str = "margin"
-    selection_margin: float = 0.01
 
     def __post_init__(self) -> None:
         if not 1 <= self.proposals_per_sample <= 100:
@@ -112,16 +102,6 @@ class CheckedSamplerConfig:
         if self.max_free_voxels < 0 or self.max_proposals < 1:
             raise ValueError(f"max_free_voxels must be >= 0 and max_proposals >= 1, got {self.max_free_voxels}, "
                              f"{self.max_proposals}")
-        if self.selection not in SELECTIONS:
-            raise ValueError(f"selection must be one of {', '.join(SELECTIONS)}, got {self.selection!r}")
-        if not (math.isfinite(self.selection_margin) and 0 < self.selection_margin <= 0.1):
-            raise ValueError(f"selection_margin must lie in (0, 0.1] metres, got {self.selection_margin}")
-
-    def selection_rows(self, occupancy: np.ndarray, packed: BitRows, voxel_size: float) -> BitRows | MarginRows:
-        """What the farthest-point selection compares, for (P, N, N, N) bool proposals (``packed``: the same)."""
-        if self.selection == "jaccard":
-            return packed
-        return MarginRows.pack(occupancy, max(1, round(self.selection_margin / voxel_size)))
 
     def accepts(self, missed: np.ndarray, free: np.ndarray, posterior: np.ndarray) -> np.ndarray:
         """(P,) bool: the proposals the check keeps, from their :meth:`GridCheck.violations` (``missed`` share of
@@ -360,10 +340,7 @@ class CheckedSampler:
                     f"returning the {len(pool)} least-violating ones")
         else:
             pool = accepted
-        n = self.completer.grid_size
-        rows = self.sampler_config.selection_rows(occupancy[pool].reshape(-1, n, n, n), packed.subset(pool),
-                                                  pose.voxel_size)
-        picked, cell = farthest_point_selection(rows, int(num_samples))
+        picked, cell = farthest_point_selection(packed.subset(pool), int(num_samples))
         weights = np.bincount(cell, minlength=len(picked)).astype(np.float64)
         weights /= weights.sum()
         chosen = pool[picked]
@@ -377,6 +354,7 @@ class CheckedSampler:
             if not note:
                 note = (f"only {len(picked)} distinct completions among {len(accepted)} of {len(ok)} proposals agree "
                         "with the view; some are repeated")
+        n = self.completer.grid_size
         chosen_probs = probs[chosen].reshape(-1, n, n, n)
         t2 = time.perf_counter()
         return CheckedResult(probabilities=chosen_probs, occupancy=chosen_probs > 0.5, grid_size=n, seed=int(seed),

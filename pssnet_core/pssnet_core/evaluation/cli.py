@@ -73,8 +73,6 @@ def _add_sampler_options(p: argparse.ArgumentParser) -> None:
                         "<model>_checked): posterior, checked or posterior,checked")
     p.add_argument("--check-delta", type=float, default=None,
                    help="the checked sampler's depth tolerance in metres (default 0.01)")
-    p.add_argument("--selection", default=None,
-                   help="the distance the checked sampler spreads its samples by: margin (default) or jaccard")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -282,13 +280,12 @@ def resolve_checkpoints(models: list[str], spec: str) -> dict[str, Path]:
 
 def load_completers(models: list[str], spec: str, device: str, threads: int | None,
                     samplers: tuple[str, ...] = ("posterior",), check_delta: float | None = None,
-                    box_temperatures: tuple[float, ...] | None = None,
-                    selection: str | None = None) -> dict[str, Completer]:
+                    box_temperatures: tuple[float, ...] | None = None) -> dict[str, Completer]:
     """Completers by method name (``pssnet_core.inference.Completer``).
 
     With ``samplers`` holding "checked", each latent-variable model also appears as ``<model>_checked``: the same
-    checkpoint behind :class:`pssnet_core.sampling.CheckedSampler` (``check_delta`` metres and ``selection``, default
-    its own). A model without a latent (3D-RecGAN++) has no checked variant and is listed once, with a note on stderr.
+    checkpoint behind :class:`pssnet_core.sampling.CheckedSampler` (``check_delta`` metres, default its own). A
+    model without a latent (3D-RecGAN++) has no checked variant and is listed once, with a note on stderr.
     """
     from pssnet_core.inference import Completer as ModelCompleter
     from pssnet_core.models.base import check_box_temperature
@@ -300,10 +297,9 @@ def load_completers(models: list[str], spec: str, device: str, threads: int | No
     if len(temperatures) != len(models):
         raise EvaluationCliError(f"{len(temperatures)} box temperatures for {len(models)} models")
     try:
-        config = CheckedSamplerConfig(**({} if check_delta is None else {"delta": check_delta}),
-                                      **({} if selection is None else {"selection": selection}))
+        config = CheckedSamplerConfig() if check_delta is None else CheckedSamplerConfig(delta=check_delta)
     except ValueError as error:
-        raise EvaluationCliError(f"--check-delta / --selection: {error}") from error
+        raise EvaluationCliError(f"--check-delta: {error}") from error
     out: dict[str, Completer] = {}
     for (model, path), temperature in zip(resolve_checkpoints(models, spec).items(), temperatures, strict=True):
         completer = ModelCompleter.from_checkpoint(path, device=device, threads=threads)
@@ -366,7 +362,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
 
     config = evaluate_config(args)  # parameters checked before the models load
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
-                                 args.check_delta, args.model_box_temperatures, args.selection)
+                                 args.check_delta, args.model_box_temperatures)
     command = " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else ""
     _write(evaluation_report(run_evaluation(config, completers), command), config.out)
     return 0
@@ -419,7 +415,7 @@ def _ambiguity_command(args: argparse.Namespace) -> int:
 
     config = ambiguity_config(args)  # parameters checked before the models load
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
-                                 args.check_delta, selection=args.selection)
+                                 args.check_delta)
     _write(ambiguity_report(run_ambiguity(config, completers)), config.out)
     return 0
 
