@@ -15,6 +15,7 @@ Usage (results/reach/README.md):
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,11 +41,16 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=40, help="hidden-handle views, evenly spaced")
     parser.add_argument("--samples", type=int, default=20)
     parser.add_argument("--delta", type=float, default=0.04, help="the arc's observation-model tolerance (m)")
+    parser.add_argument("--check-delta", type=float, default=None, help="the check's tolerance (m; default the node's)")
+    parser.add_argument("--turned-rest-low", type=float, default=None,
+                        help="the turned boxes' rest-of-latent scale's low end (default the node's)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     completer = Completer.from_checkpoint(args.checkpoint, threads=1)
-    sampler = CheckedSampler(completer)
-    config: CheckedSamplerConfig = sampler.sampler_config
+    config = CheckedSamplerConfig()
+    config = replace(config, delta=args.check_delta or config.delta,
+                     turned_rest_low=config.turned_rest_low if args.turned_rest_low is None else args.turned_rest_low)
+    sampler = CheckedSampler(completer, config)
     mugs = AmbiguityTestSet(find_test_set(args.data, args.set), False)
     geometries = handle_geometries(v.identity for v in mugs.views)
     hidden = [v for v in mugs.views if v.identity in geometries and v.meta.get("handle_visible") is False]
