@@ -322,9 +322,11 @@ class CheckedSampler:
         counts = self.sampler_config.proposal_counts(int(num_samples), self.has_box_latent, self.has_flow)
         generator = torch.Generator().manual_seed(int(seed))
         t0 = time.perf_counter()
-        probs = self.propose(x, counts, generator, float(temperature)).cpu().numpy()
+        probs = self.propose(x, counts, generator, float(temperature))
+        # Only the occupancy leaves the model's device for the check (a quarter of the bytes of the probabilities
+        # on a GPU); the chosen samples' probabilities follow at the end.
+        occupancy = (probs > 0.5).cpu().numpy()
         t1 = time.perf_counter()
-        occupancy = probs > 0.5
         check = GridCheck.prepare(known_occupied, known_free, pose, self.sampler_config.delta)
         packed = BitRows.pack(occupancy)
         missed, free = check.violations(occupancy, packed)
@@ -355,7 +357,7 @@ class CheckedSampler:
                 note = (f"only {len(picked)} distinct completions among {len(accepted)} of {len(ok)} proposals agree "
                         "with the view; some are repeated")
         n = self.completer.grid_size
-        chosen_probs = probs[chosen].reshape(-1, n, n, n)
+        chosen_probs = probs[torch.as_tensor(chosen, device=probs.device)].cpu().numpy().reshape(-1, n, n, n)
         t2 = time.perf_counter()
         return CheckedResult(probabilities=chosen_probs, occupancy=chosen_probs > 0.5, grid_size=n, seed=int(seed),
                              model=self.completer.model_name, elapsed_s=t2 - t0, weights=weights.astype(np.float32),
