@@ -83,7 +83,7 @@ def test_arc_composition_counts_handles_facing_the_camera_and_bounds_a_strict_sa
     arc = HandleArc(index=0, identity="mug", deltas=(0.01, 0.04), azimuths_deg=azimuths, violations=violations,
                     camera_azimuth_deg=180.0)
     mix = arc_composition([arc, arc], 0.04, 0.01)
-    assert mix.views == 2
+    assert mix.views == 2 and mix.facing_deg == 45.0
     assert mix.facing_share == pytest.approx(5 / 18)  # 170..-170 lie within 45 deg of facing the camera
     assert mix.strict_cover == pytest.approx(13 / 18)  # 15 deg of tolerance reach none of the facing azimuths
     itself = arc_composition([arc], 0.01, 0.01)

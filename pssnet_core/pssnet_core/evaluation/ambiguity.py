@@ -111,12 +111,14 @@ class ArcComposition:
 
     Attributes:
         views: views with both arcs.
+        facing_deg: how close to facing the camera a handle counts as facing it.
         facing_share: mean share of the arc's azimuths within ``facing_deg`` of facing the camera.
         strict_cover: mean coverage of the arc by the stricter delta's arc (:func:`arc_scores`): what a sampler
             that drew a handle at every azimuth of the stricter arc, and nowhere else, would score.
     """
 
     views: int
+    facing_deg: float
     facing_share: float
     strict_cover: float
 
@@ -131,7 +133,8 @@ def arc_composition(arcs: Sequence[HandleArc], delta: float, strict_delta: float
             continue
         facing.append(float((circular_difference_deg(wide, arc.camera_azimuth_deg) <= facing_deg).mean()))
         cover.append(arc_scores(wide, strict, tolerance_deg).coverage if len(strict) else 0.0)
-    return ArcComposition(views=len(facing), facing_share=nanmean(facing), strict_cover=nanmean(cover))
+    return ArcComposition(views=len(facing), facing_deg=facing_deg, facing_share=nanmean(facing),
+                          strict_cover=nanmean(cover))
 
 
 def extent_scores(plausible: np.ndarray, sample_extents: np.ndarray, tolerance: float = 1.0,

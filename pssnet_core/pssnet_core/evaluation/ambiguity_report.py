@@ -66,8 +66,9 @@ def markdown_ambiguity(summary: Sequence[dict[str, Any]], result: AmbiguityResul
                          f"mug passes in {truth:.0%} of the hidden views.")
             if delta > min(c.deltas):
                 mix = arc_composition(list(arcs.values()), delta, min(c.deltas), tolerance_deg=c.arc_tolerance_deg)
-                lines.append(f"At this delta {_f(100 * mix.facing_share, 0)} % of the arc lies within 45 deg of the "
-                             "handle facing the camera (in front of the body, in view, less than delta proud of it); "
+                lines.append(f"At this delta {_f(100 * mix.facing_share, 0)} % of the arc lies within "
+                             f"{mix.facing_deg:g} deg of the handle facing the camera (in front of the body, in view, "
+                             "less than delta proud of it); "
                              f"a sampler drawing handles exactly over the {min(c.deltas) * 100:g} cm arc would score "
                              f"arc coverage {_f(mix.strict_cover)} here ({mix.views} views).")
         if ranges:
