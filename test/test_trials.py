@@ -28,6 +28,13 @@ from pssnet_core.inference import Completer
 from pssnet_core.shapes import make_shape
 from pssnet_core.trials.collision import ConvexPart, decompose, measure_faithfulness
 from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, run_trial
+from pssnet_core.trials.plausible import (
+    PlausibleVariantsConfig,
+    VariantJudge,
+    face_offsets,
+    plausible_shapes,
+    within_yaw_range,
+)
 from pssnet_core.trials.run import TrialRecord, TrialsConfig, paired_lines, run_trials, wilson_interval
 from pssnet_core.trials.scenarios import (
     ScenarioConfig,
@@ -284,3 +291,46 @@ def test_out_of_family_pools_hold_independent_mugs_and_boxes_the_scenes_can_use(
     assert body_radii(procedural) == (procedural.attributes["radius"], procedural.attributes["radius_min"])
     with pytest.raises(ScenarioError, match="objects"):
         ScenarioConfig(objects="scanned")
+
+
+def test_plausible_variants_keep_what_the_view_saw_and_vary_what_it_did_not(factory, strategist):
+    scene = factory.scene("box_slit", 0)
+    observation = strategist._complete("pssnet", scene, seed=0).observation
+    judge = VariantJudge(scene.physics.shape, scene.physics.object_pose, scene.view.camera_pose,
+                         observation.known_occupied, observation.known_free, observation.pose,
+                         strategist.sampler_config)
+    base = scene.physics.shape.bounds[:, :2]
+    # The truth, and the box turned half a turn about its own axis (the same box), agree with the view; the box
+    # moved 3 cm does not.
+    assert judge.accepts(judge.stretched([base, base + 0.03])).tolist() == [True, False]
+    assert judge.accepts(judge.turned(np.array([0.0, 180.0]))).tolist() == [True, True]
+    config = PlausibleVariantsConfig(face_step=0.02, box_combinations=30)
+    shapes = plausible_shapes(judge, 6, config, seed=0)
+    assert 0 < shapes.accepted <= shapes.proposed and len(shapes.occupancy) == 6
+    assert shapes.weights.sum() == pytest.approx(1.0) and np.all(shapes.weights > 0)
+    truth = scene.ground_truth(observation.pose)
+    assert np.array_equal(shapes.occupancy[0], truth)  # the truth is proposed first, and the selection starts there
+    assert shapes.occupancy.reshape(6, -1).sum(axis=1).max() > 1.5 * truth.sum()  # the hidden part stretched
+    # A 2 cm column at the box's centre leaves the surface the camera saw unexplained.
+    centre = base.mean(axis=0)
+    assert not judge.accepts(judge.stretched([np.stack([centre - 0.01, centre + 0.01])]))[0]
+    assert shapes.accepted < shapes.proposed
+    choice = strategist.choose(scene, ("plausible",), seed=0)["plausible"]
+    assert choice.pose is not None and 0.0 < choice.score <= 1.0
+
+
+def test_plausible_variant_options_are_checked():
+    assert face_offsets(0.05, PlausibleVariantsConfig(face_step=0.01, face_reach=0.02, min_extent=0.02)).tolist() \
+        == pytest.approx([-0.03, -0.02, -0.01, 0.0, 0.01, 0.02])
+    with pytest.raises(ValueError, match="face_step"):
+        PlausibleVariantsConfig(face_step=0.2, face_reach=0.1)
+    with pytest.raises(ValueError, match="azimuth_step_deg"):
+        PlausibleVariantsConfig(azimuth_step_deg=0.0)
+
+
+def test_the_handle_posterior_keeps_the_turns_the_scenario_could_have_drawn():
+    turns = np.arange(0.0, 360.0, 45.0)
+    assert within_yaw_range(70.0, turns, (-80.0, 80.0)).tolist() == [True, False, False, False, False, True, True,
+                                                                      True]
+    assert within_yaw_range(180.0, turns, (100.0, 260.0)).tolist() == [True, True, False, False, False, False,
+                                                                        False, True]

@@ -17,4 +17,5 @@ SCENARIOS = ("mug_hidden_handle", "box_slit", "control")
 #: out-of-family generator (:mod:`pssnet_core.shapes.independent`)
 OBJECT_SOURCES = ("procedural", "independent")
 #: the grasp-choosing strategies (:mod:`pssnet_core.trials.strategies`)
-STRATEGIES = ("pssnet", "pssnet_confident", "vae", "one_completion", "observed", "oracle", "random")
+STRATEGIES = ("pssnet", "pssnet_confident", "vae", "one_completion", "observed", "oracle", "plausible",
+              "handle_posterior", "random")

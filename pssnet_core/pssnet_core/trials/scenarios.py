@@ -113,6 +113,8 @@ class TrialScene:
         notes: what was drawn (object, yaw, hidden depth, ...), for the records.
         film_view: where the filmstrip's camera looks from: distance (m), azimuth and elevation (degrees,
             MuJoCo's free camera), chosen to see the hand and the object past the clutter.
+        yaw_range_deg: the range the scenario draws a mug's yaw from (its prior over where the handle points), or
+            None (boxes).
     """
 
     scenario: str
@@ -122,6 +124,7 @@ class TrialScene:
     object_scene: ObjectScene
     notes: dict[str, float | str]
     film_view: tuple[float, float, float] = (0.6, 215.0, -30.0)
+    yaw_range_deg: tuple[float, float] | None = None
 
     def ground_truth(self, grid: GridPose) -> np.ndarray:
         """(N, N, N) true occupancy of the object in an observation grid (the project's one definition)."""
@@ -274,7 +277,8 @@ class SceneFactory:
         if scenario not in builders:
             raise ScenarioError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
         for attempt in range(MAX_ATTEMPTS):
-            shape, pose, camera, clutter, exit_path, notes = builders[scenario](_rng(seed, scenario, index, attempt))
+            shape, pose, camera, clutter, exit_path, notes, yaw_range = builders[scenario](
+                _rng(seed, scenario, index, attempt))
             object_scene = self._object_scene(shape)
             view, hidden = composite(object_scene.render(pose, camera, self.config.intrinsics), clutter)
             if scenario == "mug_hidden_handle" and (view.handle_visible or hidden > self.config.max_occlusion):
@@ -285,14 +289,15 @@ class SceneFactory:
             physics = PhysicsScene(shape, self.parts(shape), pose, clutter, exit_path)
             # From behind and above (the robot's side); the box's wall stands behind it, so look from nearer.
             film_view = (0.45, 240.0, -30.0) if scenario == "box_slit" else (0.6, 215.0, -30.0)
-            return TrialScene(scenario, index, physics, view, object_scene, notes, film_view)
+            return TrialScene(scenario, index, physics, view, object_scene, notes, film_view, yaw_range)
         raise ScenarioError(f"no valid {scenario} scene {index} in {MAX_ATTEMPTS} draws")
 
     # ---------------------------------------------------------------------------------------- builders
 
     def _mug_hidden_handle(self, rng: np.random.Generator):
         shape = self.mugs[int(rng.integers(len(self.mugs)))]
-        yaw = float(rng.uniform(-80.0, 80.0))
+        yaw_range = (-80.0, 80.0)
+        yaw = float(rng.uniform(*yaw_range))
         pose = object_pose(shape.mesh, yaw)
         radius, radius_min = body_radii(shape)
         height = float(shape.bounds[1, 2])
@@ -308,7 +313,7 @@ class SceneFactory:
         target = np.array([0.0, 0.0, height / 2]) + rng.uniform(-0.01, 0.01, size=3)
         camera = orbit_camera(target, float(rng.uniform(0.5, 0.8)), float(rng.uniform(5.0, 20.0)))
         notes = {"yaw_deg": round(yaw, 2), "body_diameter": round(2 * radius_min, 4)}
-        return shape, pose, camera, (shelf, *blocks), ((0.0, 0.0, 0.02), (0.15, 0.0, 0.0)), notes
+        return shape, pose, camera, (shelf, *blocks), ((0.0, 0.0, 0.02), (0.15, 0.0, 0.0)), notes, yaw_range
 
     def _box_slit(self, rng: np.random.Generator):
         shape = self.boxes[int(rng.integers(len(self.boxes)))]
@@ -339,18 +344,19 @@ class SceneFactory:
         wall = ClutterBox(centre=(float(lo[0]) + 0.37, 0.0, 0.2), half=(0.01, 0.3, 0.2), name="wall")
         notes = {"yaw_deg": round(yaw, 2), "hidden_depth": round(float(hi[0] - lo[0]), 4),
                  "width": round(float(hi[1] - lo[1]), 4), "slit_offset": round(offset, 4)}
-        return shape, pose, camera, (*blocks, wall), ((0.0, 0.0, 0.15),), notes
+        return shape, pose, camera, (*blocks, wall), ((0.0, 0.0, 0.15),), notes, None
 
     def _control(self, rng: np.random.Generator, mug: bool):
         pool = self.mugs if mug else self.boxes
         shape = pool[int(rng.integers(len(pool)))]
         # A mug's handle turned towards the camera's side; a box at any yaw.
-        yaw = float(rng.uniform(100.0, 260.0)) if mug else float(rng.uniform(0.0, 360.0))
+        yaw_range = (100.0, 260.0) if mug else (0.0, 360.0)
+        yaw = float(rng.uniform(*yaw_range))
         pose = object_pose(shape.mesh, yaw)
         height = float(posed_box_corners(shape, pose)[:, 2].max())
         target = np.array([0.0, 0.0, height / 2]) + rng.uniform(-0.01, 0.01, size=3)
         camera = orbit_camera(target, float(rng.uniform(0.5, 0.8)), float(rng.uniform(25.0, 45.0)))
-        return shape, pose, camera, (), ((0.0, 0.0, 0.15),), {"yaw_deg": round(yaw, 2)}
+        return shape, pose, camera, (), ((0.0, 0.0, 0.15),), {"yaw_deg": round(yaw, 2)}, yaw_range if mug else None
 
 
 def clear_of_clutter(poses: np.ndarray, widths: np.ndarray, clutter: tuple[ClutterBox, ...],

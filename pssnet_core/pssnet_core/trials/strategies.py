@@ -15,6 +15,12 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
 - ``one_completion``: PSSNet's posterior mean alone (``decode(mu) > 0.5``), one shape;
 - ``observed``: the observed voxels alone (the known-occupied grid);
 - ``oracle``: the true shape in the same grid (an upper bound: the planner's own limits remain);
+- ``plausible``: the true object changed only where the view cannot see, checked, chosen and weighted as the
+  node's checked sampler does (:mod:`~pssnet_core.trials.plausible`): what a sampler that draws exactly what the
+  view allows would lift: every image-consistent sampler that spans what the view allows, under this planner;
+- ``handle_posterior``: ``plausible`` restricted to the handle directions the scenario itself draws (mugs; other
+  objects as ``plausible``): the exact posterior of the hidden handle given the view, so the ceiling of any
+  sampler that cannot see the handle, under this planner;
 - ``random``: a uniformly random candidate among PSSNet's that hold for at least one sample (a lower bound).
 """
 
@@ -31,6 +37,7 @@ from pssnet_core.inference import Completer
 from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineResult
 from pssnet_core.trials import STRATEGIES
 from pssnet_core.trials.physics import PhysicsConfig
+from pssnet_core.trials.plausible import PlausibleVariantsConfig, VariantJudge, plausible_shapes
 from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter
 
 
@@ -80,6 +87,8 @@ class Strategist:
                  physics: PhysicsConfig, clutter_margin: float, sampler: str = "checked") -> None:
         config = PipelineConfig(num_samples=num_samples, grasps=grasps, sampler=sampler)
         self.pipelines = {"pssnet": CompletionPipeline(pssnet, config)}
+        self.num_samples = num_samples
+        self.sampler_config = config.checked_sampler_config()
         if vae is not None:
             self.pipelines["vae"] = CompletionPipeline(vae, config)
         self.pssnet = pssnet
@@ -133,6 +142,15 @@ class Strategist:
                 rng = np.random.default_rng([seed, zlib.crc32(b"random")])
                 pick = int(rng.choice(holding)) if len(holding) else None
                 choices[name] = self._choice(name, pssnet_grasps, pick, camera)
+            elif name in ("plausible", "handle_posterior"):
+                judge = VariantJudge(scene.physics.shape, scene.physics.object_pose, camera,
+                                     observation.known_occupied, observation.known_free, observation.pose,
+                                     self.sampler_config)
+                prior = scene.yaw_range_deg if name == "handle_posterior" else None
+                shapes = plausible_shapes(judge, self.num_samples, PlausibleVariantsConfig(), seed,
+                                          float(scene.notes.get("yaw_deg", 0.0)), prior)
+                choices[name] = self._choice(name, self._plan(shapes.occupancy, result, scene, seed, shapes.weights),
+                                             0, camera)
             elif name == "vae":
                 vae = self._complete("vae", scene, seed)
                 choices[name] = self._choice(name, self._plan(vae.occupancy, vae, scene, seed, vae.weights), 0, camera)

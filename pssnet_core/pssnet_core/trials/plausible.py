@@ -1,0 +1,208 @@
+"""The ``plausible`` strategy's shapes: the true object changed only where the view cannot see, as an ideal sampler.
+
+The question it answers: how many objects would the planner lift if a sampler drew exactly what the view allows?
+That is the ceiling of every image-consistent sampler under this planner, between the oracle (which knows the
+hidden side) and PSSNet (whose samples are also wrong where the view *is* clear).
+
+Proposals are variants of the scene's true object, voxelised with the project's one occupancy definition:
+
+- a mug turned about its own vertical axis (object frame z, through x = y = 0) to every ``azimuth_step_deg``, so
+  its handle goes round (:func:`pssnet_core.evaluation.handles.turned`); the body is a surface of revolution;
+- any other object with each of its four vertical faces moved in or out along its own horizontal axes, in
+  ``face_step`` steps (an affine stretch per axis, so the other faces stay where they are; the height stays).
+  Faces are first moved one at a time; the offsets the view accepts for each are then combined (all
+  combinations, or ``box_combinations`` of them drawn at random).
+
+Each proposal is judged by the checked sampler's own check (:class:`pssnet_core.sampling.GridCheck` with the
+node's :class:`~pssnet_core.sampling.CheckedSamplerConfig`), and ``num_samples`` of the accepted ones are chosen
+and weighted the way the checked sampler chooses its samples (farthest point on Jaccard distance, weight = the
+share of accepted proposals each stands for). So this strategy is the node's default sampler with perfect
+proposals: the difference between it and ``pssnet`` is what the network's proposals cost.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from pssnet_core.data.scenes import ObjectScene
+from pssnet_core.evaluation.handles import turned
+from pssnet_core.geometry import GridPose
+from pssnet_core.sampling import CheckedSamplerConfig, GridCheck
+from pssnet_core.shapes import Shape
+from pssnet_core.spread import BitRows, farthest_point_selection
+
+
+@dataclass(frozen=True)
+class PlausibleVariantsConfig:
+    """How the true object's variants are proposed.
+
+    Attributes:
+        azimuth_step_deg: step of a mug's turns (degrees).
+        face_step: step of a face's moves (metres).
+        face_reach: farthest a face moves outwards (metres).
+        min_extent: least extent a face's inward move leaves along its axis (metres).
+        box_combinations: at most this many combinations of the faces' accepted offsets are judged.
+    """
+
+    azimuth_step_deg: float = 5.0
+    face_step: float = 0.01
+    face_reach: float = 0.12
+    min_extent: float = 0.02
+    box_combinations: int = 200
+
+    def __post_init__(self) -> None:
+        if not 0.5 <= self.azimuth_step_deg <= 90.0:
+            raise ValueError(f"azimuth_step_deg must lie in [0.5, 90], got {self.azimuth_step_deg}")
+        if not (0.001 <= self.face_step <= self.face_reach <= 0.5 and 0.0 < self.min_extent <= 0.2):
+            raise ValueError(f"need 0.001 <= face_step <= face_reach <= 0.5 and 0 < min_extent <= 0.2 (m), got "
+                             f"{self.face_step}, {self.face_reach}, {self.min_extent}")
+        if self.box_combinations < 1:
+            raise ValueError(f"box_combinations must be >= 1, got {self.box_combinations}")
+
+
+@dataclass(frozen=True)
+class PlausibleShapes:
+    """The chosen variants.
+
+    Attributes:
+        occupancy: (n, N, N, N) bool, the samples.
+        weights: (n,) share of the accepted variants each stands for (sums to 1).
+        proposed: variants judged.
+        accepted: variants the check accepted (0: none, then ``occupancy`` is the true shape alone).
+    """
+
+    occupancy: np.ndarray
+    weights: np.ndarray
+    proposed: int
+    accepted: int
+
+
+def _stretched(shape: Shape, bounds: np.ndarray) -> Shape:
+    """``shape`` mapped affinely along x and y so that its horizontal bounds become ``bounds`` ((2, 2): min, max of
+    x and y)."""
+    old = shape.bounds[:, :2]
+    vertices = np.array(shape.mesh.vertices, dtype=np.float64)
+    vertices[:, :2] = bounds[0] + (vertices[:, :2] - old[0]) * (bounds[1] - bounds[0]) / (old[1] - old[0])
+    mesh = trimesh.Trimesh(vertices=vertices, faces=np.asarray(shape.mesh.faces), process=False)
+    return Shape(identity=shape.identity, mesh=mesh)
+
+
+class VariantJudge:
+    """Voxelises variants of one scene's object in the observation grid and judges them with the checked sampler's
+    check."""
+
+    def __init__(self, shape: Shape, object_pose: np.ndarray, camera_pose: np.ndarray, known_occupied: np.ndarray,
+                 known_free: np.ndarray, grid: GridPose, sampler: CheckedSamplerConfig) -> None:
+        self.shape = shape
+        self.object_pose = np.asarray(object_pose, dtype=np.float64)
+        self.camera_pose = np.asarray(camera_pose, dtype=np.float64)
+        self.grid = grid
+        self.sampler = sampler
+        self.check = GridCheck.prepare(known_occupied, known_free, grid, sampler.delta)
+        self._scene = ObjectScene(shape, threads=1)
+
+    def turned(self, azimuths_deg: np.ndarray) -> np.ndarray:
+        """(A, N, N, N) bool: the object turned about its vertical axis by each azimuth."""
+        return np.stack([self._scene.ground_truth(turned(self.object_pose, a), self.grid, self.camera_pose)
+                         for a in azimuths_deg])
+
+    def stretched(self, bounds: list[np.ndarray]) -> np.ndarray:
+        """(B, N, N, N) bool: the object with each of the horizontal ``bounds`` (see :func:`_stretched`)."""
+        return np.stack([ObjectScene(_stretched(self.shape, b), threads=1).ground_truth(
+            self.object_pose, self.grid, self.camera_pose) for b in bounds])
+
+    def accepts(self, occupancy: np.ndarray) -> np.ndarray:
+        """(P,) bool: which of the (P, N, N, N) grids the checked sampler's check keeps."""
+        flat = occupancy.reshape(len(occupancy), -1)
+        missed, free = self.check.violations(flat, BitRows.pack(flat))
+        return self.sampler.accepts(missed, free, np.ones(len(flat), dtype=bool))
+
+
+def face_offsets(extent: float, config: PlausibleVariantsConfig) -> np.ndarray:
+    """Outward moves (metres) of one face of an object ``extent`` long along the face's axis: 0, then inwards as
+    far as ``min_extent`` leaves and outwards to ``face_reach``."""
+    inward = max(0, math.floor((extent - config.min_extent) / config.face_step + 1e-9))
+    outward = math.floor(config.face_reach / config.face_step + 1e-9)
+    return np.arange(-inward, outward + 1) * config.face_step
+
+
+def box_variants(judge: VariantJudge, config: PlausibleVariantsConfig, rng: np.random.Generator
+                 ) -> tuple[np.ndarray, int]:
+    """Accepted horizontal stretches of the object (the true shape first when accepted) and variants judged."""
+    base = judge.shape.bounds[:, :2].copy()
+    judged = 0
+    accepted_offsets: list[np.ndarray] = []
+    for face in range(4):  # x min, x max, y min, y max
+        axis, side = divmod(face, 2)
+        offsets = face_offsets(float(base[1, axis] - base[0, axis]), config)
+        offsets = offsets[offsets != 0.0]
+        bounds = []
+        for d in offsets:
+            b = base.copy()
+            b[side, axis] += d if side == 1 else -d
+            bounds.append(b)
+        ok = judge.accepts(judge.stretched(bounds)) if bounds else np.zeros(0, dtype=bool)
+        judged += len(bounds)
+        accepted_offsets.append(np.concatenate([[0.0], offsets[ok]]))
+    extents = base[1] - base[0]
+    combos = [c for c in itertools.product(*accepted_offsets)  # both faces of an axis moved in: keep min_extent
+              if min(extents[0] + c[0] + c[1], extents[1] + c[2] + c[3]) >= config.min_extent - 1e-9]
+    if len(combos) > config.box_combinations:  # the truth (all zero) is the first combination
+        keep = np.concatenate([[0], 1 + rng.choice(len(combos) - 1, config.box_combinations - 1, replace=False)])
+        combos = [combos[i] for i in np.sort(keep)]
+    bounds = []
+    for combo in combos:
+        b = base.copy()
+        b[0, 0] -= combo[0]
+        b[1, 0] += combo[1]
+        b[0, 1] -= combo[2]
+        b[1, 1] += combo[3]
+        bounds.append(b)
+    grids = judge.stretched(bounds)
+    judged += len(grids)
+    return grids[judge.accepts(grids)], judged
+
+
+def within_yaw_range(yaw_deg: float, turns_deg: np.ndarray, yaw_range_deg: tuple[float, float]) -> np.ndarray:
+    """Which turns put an object at ``yaw_deg`` at a yaw inside ``yaw_range_deg`` (degrees, low to high; wraps)."""
+    low, high = yaw_range_deg
+    return np.mod(yaw_deg + np.asarray(turns_deg, dtype=np.float64) - low, 360.0) <= (high - low) + 1e-9
+
+
+def mug_variants(judge: VariantJudge, config: PlausibleVariantsConfig, yaw_deg: float = 0.0,
+                 yaw_range_deg: tuple[float, float] | None = None) -> tuple[np.ndarray, int]:
+    """Accepted turns of the mug (the true pose first when accepted) and variants judged; with ``yaw_range_deg``
+    only the turns that leave the mug (now at ``yaw_deg``) inside that range are proposed."""
+    azimuths = np.arange(0.0, 360.0, config.azimuth_step_deg)
+    if yaw_range_deg is not None:
+        azimuths = azimuths[within_yaw_range(yaw_deg, azimuths, yaw_range_deg)]
+    grids = judge.turned(azimuths)
+    return grids[judge.accepts(grids)], len(grids)
+
+
+def plausible_shapes(judge: VariantJudge, num_samples: int, config: PlausibleVariantsConfig | None = None,
+                     seed: int = 0, yaw_deg: float = 0.0,
+                     yaw_range_deg: tuple[float, float] | None = None) -> PlausibleShapes:
+    """``num_samples`` variants of the judge's object that its view allows, chosen and weighted as the checked
+    sampler chooses (see the module docstring); the true shape alone when the check accepts no variant.
+
+    ``yaw_range_deg`` (mugs): propose only the turns the scene's own prior allows (the mug is at ``yaw_deg``); the
+    accepted turns are then the exact posterior of the handle's direction given the view, for that scenario.
+    """
+    config = config or PlausibleVariantsConfig()
+    if judge.shape.handle is not None:
+        accepted, judged = mug_variants(judge, config, yaw_deg, yaw_range_deg)
+    else:
+        accepted, judged = box_variants(judge, config, np.random.default_rng(seed))
+    if len(accepted) == 0:
+        truth = judge.turned(np.zeros(1))
+        return PlausibleShapes(truth, np.ones(1, dtype=np.float32), judged, 0)
+    flat = accepted.reshape(len(accepted), -1)
+    picked, cell = farthest_point_selection(BitRows.pack(flat), int(num_samples))
+    weights = np.bincount(cell, minlength=len(picked)).astype(np.float64)
+    return PlausibleShapes(accepted[picked], (weights / weights.sum()).astype(np.float32), judged, len(accepted))
