@@ -26,6 +26,7 @@ from pssnet_core.geometry import GridPose
 from pssnet_core.grasps import GraspConfig, GripperConfig, plan_grasps
 from pssnet_core.inference import Completer
 from pssnet_core.shapes import make_shape
+from pssnet_core.trials.cli import chosen_strategies
 from pssnet_core.trials.collision import ConvexPart, decompose, measure_faithfulness
 from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, run_trial
 from pssnet_core.trials.plausible import (
@@ -272,6 +273,10 @@ def test_the_command_is_registered_with_its_options():
     assert args.trials == 3 and args.strategies == ("oracle", "random") and args.scenarios == ("control",)
     assert args.rank_by == GraspConfig().rank_by
     assert build_parser().parse_args(["grasp-trials", "--rank-by", "fraction"]).rank_by == "fraction"
+    # By default every strategy but the reference ones (slow) runs, and the VAE only with its checkpoint.
+    default = chosen_strategies(build_parser().parse_args(["grasp-trials"]))
+    assert "oracle" in default and not {"vae", "plausible", "handle_posterior"} & set(default)
+    assert "vae" in chosen_strategies(build_parser().parse_args(["grasp-trials", "--vae-checkpoint", "v.pt"]))
     for wrong in (["--scenarios", "kitchen"], ["--rank-by", "luck"]):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["grasp-trials", *wrong])

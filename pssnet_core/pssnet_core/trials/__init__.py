@@ -19,3 +19,7 @@ OBJECT_SOURCES = ("procedural", "independent")
 #: the grasp-choosing strategies (:mod:`pssnet_core.trials.strategies`)
 STRATEGIES = ("pssnet", "pssnet_confident", "vae", "one_completion", "observed", "oracle", "plausible",
               "handle_posterior", "random")
+#: run only when asked for: yardsticks that plan on variants of the true object (hundreds voxelised per scene)
+REFERENCE_STRATEGIES = ("plausible", "handle_posterior")
+#: what a run compares unless told otherwise (the VAE too when a VAE checkpoint is given)
+DEFAULT_STRATEGIES = tuple(s for s in STRATEGIES if s not in (*REFERENCE_STRATEGIES, "vae"))

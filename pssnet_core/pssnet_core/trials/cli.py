@@ -9,7 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from pssnet_core.grasps.config import RANKINGS, GraspConfig
-from pssnet_core.trials import HEADLESS_GL, OBJECT_SOURCES, SCENARIOS, STRATEGIES
+from pssnet_core.trials import DEFAULT_STRATEGIES, HEADLESS_GL, OBJECT_SOURCES, SCENARIOS, STRATEGIES
 
 
 def _names(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
@@ -31,8 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--trials", type=int, default=200, help="scenes per scenario; every strategy gets each scene")
     p.add_argument("--scenarios", type=lambda t: _names(t, SCENARIOS, "scenarios"), default=SCENARIOS,
                    help=f"comma-separated (default {','.join(SCENARIOS)})")
-    p.add_argument("--strategies", type=lambda t: _names(t, STRATEGIES, "strategies"), default=STRATEGIES,
-                   help=f"comma-separated (default {','.join(STRATEGIES)})")
+    p.add_argument("--strategies", type=lambda t: _names(t, STRATEGIES, "strategies"), default=None,
+                   help=f"comma-separated, of {','.join(STRATEGIES)} (default {','.join(DEFAULT_STRATEGIES)}, and vae "
+                        "with --vae-checkpoint)")
     p.add_argument("--objects", choices=OBJECT_SOURCES, default="procedural",
                    help="procedural: held-out objects of the training data's generator (default); independent: "
                         "objects of the out-of-family generator, which made no training view")
@@ -51,6 +52,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_command)
 
 
+def chosen_strategies(args: argparse.Namespace) -> tuple[str, ...]:
+    """``--strategies``, or the default ones (with the VAE when a VAE checkpoint is given)."""
+    if args.strategies is not None:
+        return args.strategies
+    return (*DEFAULT_STRATEGIES, "vae") if args.vae_checkpoint else DEFAULT_STRATEGIES
+
+
 def run_command(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo is first imported (pssnet_core.trials)
     from pssnet_core.inference import CheckpointError, Completer
@@ -58,9 +66,9 @@ def run_command(args: argparse.Namespace) -> int:
     from pssnet_core.trials.strategies import Strategist
 
     checkpoints = {"pssnet": str(args.pssnet_checkpoint or "shipped default"), "vae": str(args.vae_checkpoint or "")}
-    config = TrialsConfig(scenarios=args.scenarios, strategies=args.strategies, trials=args.trials, seed=args.seed,
-                          num_samples=args.num_samples, sampler=args.sampler, filmstrip_scenes=args.filmstrip_scenes,
-                          checkpoints=checkpoints)
+    config = TrialsConfig(scenarios=args.scenarios, strategies=chosen_strategies(args), trials=args.trials,
+                          seed=args.seed, num_samples=args.num_samples, sampler=args.sampler,
+                          filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
     config = replace(config, scenario=replace(config.scenario, objects=args.objects),
                      grasps=replace(config.grasps, rank_by=args.rank_by))
     if args.cache_dir is not None:

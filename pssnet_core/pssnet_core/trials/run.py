@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from pssnet_core.grasps import GraspConfig
-from pssnet_core.trials import SCENARIOS, STRATEGIES
+from pssnet_core.trials import DEFAULT_STRATEGIES, SCENARIOS
 from pssnet_core.trials.collision import Faithfulness
 from pssnet_core.trials.physics import OUTCOMES, PhysicsConfig, PhysicsScene, TrialOutcome, build_model, run_trial
 from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory
@@ -50,7 +50,7 @@ class TrialsConfig:
     """
 
     scenarios: tuple[str, ...] = SCENARIOS
-    strategies: tuple[str, ...] = STRATEGIES
+    strategies: tuple[str, ...] = DEFAULT_STRATEGIES
     trials: int = 200
     seed: int = 0
     num_samples: int = 20
