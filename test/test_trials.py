@@ -32,8 +32,11 @@ from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, 
 from pssnet_core.trials.plausible import (
     PlausibleVariantsConfig,
     VariantJudge,
+    Variants,
     face_offsets,
     plausible_shapes,
+    pool_variants,
+    spread_choice,
     within_yaw_range,
 )
 from pssnet_core.trials.run import TrialRecord, TrialsConfig, paired_lines, run_trials, wilson_interval
@@ -275,7 +278,7 @@ def test_the_command_is_registered_with_its_options():
     assert build_parser().parse_args(["grasp-trials", "--rank-by", "fraction"]).rank_by == "fraction"
     # By default every strategy but the reference ones (slow) runs, and the VAE only with its checkpoint.
     default = chosen_strategies(build_parser().parse_args(["grasp-trials"]))
-    assert "oracle" in default and not {"vae", "plausible", "handle_posterior"} & set(default)
+    assert "oracle" in default and not {"vae", "plausible", "scene_posterior"} & set(default)
     assert "vae" in chosen_strategies(build_parser().parse_args(["grasp-trials", "--vae-checkpoint", "v.pt"]))
     for wrong in (["--scenarios", "kitchen"], ["--rank-by", "luck"]):
         with pytest.raises(SystemExit):
@@ -314,7 +317,8 @@ def test_plausible_variants_keep_what_the_view_saw_and_vary_what_it_did_not(fact
     assert 0 < shapes.accepted <= shapes.proposed and len(shapes.occupancy) == 6
     assert shapes.weights.sum() == pytest.approx(1.0) and np.all(shapes.weights > 0)
     truth = scene.ground_truth(observation.pose)
-    assert np.array_equal(shapes.occupancy[0], truth)  # the truth is proposed first, and the selection starts there
+    first = shapes.occupancy[0]  # the truth is proposed first, and the selection starts there
+    assert (first & truth).sum() >= 0.97 * (first | truth).sum()
     assert shapes.occupancy.reshape(6, -1).sum(axis=1).max() > 1.5 * truth.sum()  # the hidden part stretched
     # A 2 cm column at the box's centre leaves the surface the camera saw unexplained.
     centre = base.mean(axis=0)
@@ -322,6 +326,21 @@ def test_plausible_variants_keep_what_the_view_saw_and_vary_what_it_did_not(fact
     assert shapes.accepted < shapes.proposed
     choice = strategist.choose(scene, ("plausible",), seed=0)["plausible"]
     assert choice.pose is not None and 0.0 < choice.score <= 1.0
+    # The scenario's own boxes, placed where the view allows: the true box among them, none where the camera saw
+    # through.
+    observed = observation.points @ scene.view.camera_pose[:3, :3].T + scene.view.camera_pose[:3, 3]
+    pool = pool_variants(judge, scene.pool, float(scene.notes["yaw_deg"]), observed, config)
+    overlap = [(g & truth).sum() / (g | truth).sum() for g in pool.grids[pool.ok]]
+    assert len(scene.pool) == 3 and max(overlap) > 0.97
+    assert not np.any(pool.grids[pool.ok].reshape(int(pool.ok.sum()), -1) & judge.check.deep_free)
+
+
+def test_when_the_check_accepts_no_variant_the_least_violating_are_chosen():
+    grids = np.zeros((4, 2, 2, 2), dtype=bool)
+    grids[1, 0, 0, 0] = grids[2, 1, 1, 1] = grids[3] = True
+    chosen = spread_choice(Variants(grids, np.zeros(4, bool), np.array([3.0, 0.5, 1.0, 9.0]), 4), 2)
+    assert chosen.accepted == 0 and chosen.proposed == 4
+    assert [g.sum() for g in chosen.occupancy] == [1, 1] and chosen.weights.tolist() == [0.5, 0.5]
 
 
 def test_plausible_variant_options_are_checked():
@@ -333,7 +352,7 @@ def test_plausible_variant_options_are_checked():
         PlausibleVariantsConfig(azimuth_step_deg=0.0)
 
 
-def test_the_handle_posterior_keeps_the_turns_the_scenario_could_have_drawn():
+def test_the_scene_posterior_keeps_the_turns_the_scenario_could_have_drawn():
     turns = np.arange(0.0, 360.0, 45.0)
     assert within_yaw_range(70.0, turns, (-80.0, 80.0)).tolist() == [True, False, False, False, False, True, True,
                                                                       True]

@@ -1,8 +1,8 @@
-"""The ``plausible`` strategy's shapes: the true object changed only where the view cannot see, as an ideal sampler.
+"""The reference strategies' shapes: the true object changed only where the view cannot see, as an ideal sampler.
 
-The question it answers: how many objects would the planner lift if a sampler drew exactly what the view allows?
-That is the ceiling of every image-consistent sampler under this planner, between the oracle (which knows the
-hidden side) and PSSNet (whose samples are also wrong where the view *is* clear).
+The question they answer: how many objects would the planner lift if a sampler drew exactly what the view allows?
+That lies between the oracle (which knows the hidden side) and PSSNet (whose samples are also wrong where the view
+*is* clear). These strategies see the true object: they are yardsticks for evaluation, not something a robot runs.
 
 Proposals are variants of the scene's true object, voxelised with the project's one occupancy definition:
 
@@ -16,8 +16,13 @@ Proposals are variants of the scene's true object, voxelised with the project's 
 Each proposal is judged by the checked sampler's own check (:class:`pssnet_core.sampling.GridCheck` with the
 node's :class:`~pssnet_core.sampling.CheckedSamplerConfig`), and ``num_samples`` of the accepted ones are chosen
 and weighted the way the checked sampler chooses its samples (farthest point on Jaccard distance, weight = the
-share of accepted proposals each stands for). So this strategy is the node's default sampler with perfect
-proposals: the difference between it and ``pssnet`` is what the network's proposals cost.
+share of accepted proposals each stands for; when none is accepted, the least-violating ones, as the sampler
+does). So this strategy is the node's default sampler with perfect proposals: the difference between it and
+``pssnet`` is what the network's proposals cost.
+
+The ``scene_posterior`` strategy proposes only what the scenario itself could have drawn (:func:`posterior_shapes`):
+a mug's turns within the scenario's yaw range (the exact posterior of the hidden handle given the view), or the
+scenario's own boxes placed as the view allows. No sampler that learned the objects' distribution can expect more.
 """
 
 from __future__ import annotations
@@ -27,14 +32,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 
-from pssnet_core.data.scenes import ObjectScene
+from pssnet_core.data.scenes import ObjectScene, object_pose, posed_box_corners
 from pssnet_core.evaluation.handles import turned
-from pssnet_core.geometry import GridPose
+from pssnet_core.geometry import GridPose, solid_occupancy
 from pssnet_core.sampling import CheckedSamplerConfig, GridCheck
 from pssnet_core.shapes import Shape
 from pssnet_core.spread import BitRows, farthest_point_selection
+
+#: the largest stretch of an object's horizontal extent :meth:`VariantJudge.stretched` voxelises
+STRETCH_LIMIT = 8.0
 
 
 @dataclass(frozen=True)
@@ -73,7 +80,7 @@ class PlausibleShapes:
         occupancy: (n, N, N, N) bool, the samples.
         weights: (n,) share of the accepted variants each stands for (sums to 1).
         proposed: variants judged.
-        accepted: variants the check accepted (0: none, then ``occupancy`` is the true shape alone).
+        accepted: variants the check accepted (0: none, then ``occupancy`` holds the least-violating ones).
     """
 
     occupancy: np.ndarray
@@ -82,14 +89,21 @@ class PlausibleShapes:
     accepted: int
 
 
-def _stretched(shape: Shape, bounds: np.ndarray) -> Shape:
-    """``shape`` mapped affinely along x and y so that its horizontal bounds become ``bounds`` ((2, 2): min, max of
-    x and y)."""
-    old = shape.bounds[:, :2]
-    vertices = np.array(shape.mesh.vertices, dtype=np.float64)
-    vertices[:, :2] = bounds[0] + (vertices[:, :2] - old[0]) * (bounds[1] - bounds[0]) / (old[1] - old[0])
-    mesh = trimesh.Trimesh(vertices=vertices, faces=np.asarray(shape.mesh.faces), process=False)
-    return Shape(identity=shape.identity, mesh=mesh)
+@dataclass(frozen=True)
+class Variants:
+    """Proposed variants and the check's verdict.
+
+    Attributes:
+        grids: (P, N, N, N) bool.
+        ok: (P,) the check accepts it.
+        badness: (P,) how badly it violates the view (:meth:`VariantJudge.judge`).
+        judged: variants judged in all (also those screened out before ``grids``).
+    """
+
+    grids: np.ndarray
+    ok: np.ndarray
+    badness: np.ndarray
+    judged: int
 
 
 class VariantJudge:
@@ -112,15 +126,51 @@ class VariantJudge:
                          for a in azimuths_deg])
 
     def stretched(self, bounds: list[np.ndarray]) -> np.ndarray:
-        """(B, N, N, N) bool: the object with each of the horizontal ``bounds`` (see :func:`_stretched`)."""
-        return np.stack([ObjectScene(_stretched(self.shape, b), threads=1).ground_truth(
-            self.object_pose, self.grid, self.camera_pose) for b in bounds])
+        """(B, N, N, N) bool: the object mapped affinely along its own x and y so that its horizontal bounds become
+        each of ``bounds`` ((2, 2): min and max of x and y; the other faces stay where they are).
+
+        The project's occupancy of the stretched solid, without building it: a point lies inside it where the
+        inverse map takes it inside the true object, and its surface is the true surface's samples mapped
+        forwards, drawn up to ``STRETCH_LIMIT`` times denser so that they stay dense enough for the voxels when
+        stretched.
+        """
+        old = self.shape.bounds[:, :2]
+        surface = self._scene.surface(self.grid.voxel_size / STRETCH_LIMIT)
+        camera_from_object = np.linalg.inv(self.camera_pose) @ self.object_pose
+        grids = []
+        for b in bounds:
+            scale = (b[1] - b[0]) / (old[1] - old[0])
+            if not np.all((scale > 0) & (scale <= STRETCH_LIMIT)):
+                raise ValueError(f"a stretch by {scale} leaves (0, {STRETCH_LIMIT}]")
+            shift = b[0] - old[0] * scale
+            # The samples are drawn independently, so a prefix of them is as dense as the stretch needs.
+            needed = math.ceil(len(surface) * (max(float(scale.max()), 1.0) / STRETCH_LIMIT) ** 2)
+            mapped = surface[:needed].copy()
+            mapped[:, :2] = mapped[:, :2] * scale + shift
+
+            def inside(points: np.ndarray, scale: np.ndarray = scale, shift: np.ndarray = shift) -> np.ndarray:
+                back = points.copy()
+                back[:, :2] = (back[:, :2] - shift) / scale
+                return self._scene.occupancy(back)
+
+            grids.append(solid_occupancy(self.grid, camera_from_object, mapped, inside))
+        return np.stack(grids)
+
+    def placed(self, scene: ObjectScene, poses: list[np.ndarray]) -> np.ndarray:
+        """(P, N, N, N) bool: another object (its ray-casting scene) at each world pose."""
+        return np.stack([scene.ground_truth(pose, self.grid, self.camera_pose) for pose in poses])
+
+    def judge(self, occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For (P, N, N, N) grids: which the checked sampler's check keeps, and how badly each violates the view
+        (missed observed voxels and free-space voxels on one scale, as the sampler orders them when it keeps none)."""
+        flat = occupancy.reshape(len(occupancy), -1)
+        missed, free = self.check.violations(flat, BitRows.pack(flat))
+        badness = missed * max(len(self.check.observed_rays), 1) + free
+        return self.sampler.accepts(missed, free, np.ones(len(flat), dtype=bool)), badness
 
     def accepts(self, occupancy: np.ndarray) -> np.ndarray:
         """(P,) bool: which of the (P, N, N, N) grids the checked sampler's check keeps."""
-        flat = occupancy.reshape(len(occupancy), -1)
-        missed, free = self.check.violations(flat, BitRows.pack(flat))
-        return self.sampler.accepts(missed, free, np.ones(len(flat), dtype=bool))
+        return self.judge(occupancy)[0]
 
 
 def face_offsets(extent: float, config: PlausibleVariantsConfig) -> np.ndarray:
@@ -131,9 +181,9 @@ def face_offsets(extent: float, config: PlausibleVariantsConfig) -> np.ndarray:
     return np.arange(-inward, outward + 1) * config.face_step
 
 
-def box_variants(judge: VariantJudge, config: PlausibleVariantsConfig, rng: np.random.Generator
-                 ) -> tuple[np.ndarray, int]:
-    """Accepted horizontal stretches of the object (the true shape first when accepted) and variants judged."""
+def box_variants(judge: VariantJudge, config: PlausibleVariantsConfig, rng: np.random.Generator) -> Variants:
+    """Horizontal stretches of the object (the true shape first): every face alone, then combinations of the
+    offsets each face allows alone (only the combinations are returned)."""
     base = judge.shape.bounds[:, :2].copy()
     judged = 0
     accepted_offsets: list[np.ndarray] = []
@@ -164,8 +214,7 @@ def box_variants(judge: VariantJudge, config: PlausibleVariantsConfig, rng: np.r
         b[1, 1] += combo[3]
         bounds.append(b)
     grids = judge.stretched(bounds)
-    judged += len(grids)
-    return grids[judge.accepts(grids)], judged
+    return Variants(grids, *judge.judge(grids), judged + len(grids))
 
 
 def within_yaw_range(yaw_deg: float, turns_deg: np.ndarray, yaw_range_deg: tuple[float, float]) -> np.ndarray:
@@ -175,34 +224,88 @@ def within_yaw_range(yaw_deg: float, turns_deg: np.ndarray, yaw_range_deg: tuple
 
 
 def mug_variants(judge: VariantJudge, config: PlausibleVariantsConfig, yaw_deg: float = 0.0,
-                 yaw_range_deg: tuple[float, float] | None = None) -> tuple[np.ndarray, int]:
-    """Accepted turns of the mug (the true pose first when accepted) and variants judged; with ``yaw_range_deg``
-    only the turns that leave the mug (now at ``yaw_deg``) inside that range are proposed."""
+                 yaw_range_deg: tuple[float, float] | None = None) -> Variants:
+    """Turns of the mug (the true pose first); with ``yaw_range_deg`` only the turns that leave the mug (now at
+    ``yaw_deg``) inside that range."""
     azimuths = np.arange(0.0, 360.0, config.azimuth_step_deg)
     if yaw_range_deg is not None:
         azimuths = azimuths[within_yaw_range(yaw_deg, azimuths, yaw_range_deg)]
     grids = judge.turned(azimuths)
-    return grids[judge.accepts(grids)], len(grids)
+    return Variants(grids, *judge.judge(grids), len(grids))
+
+
+def pool_variants(judge: VariantJudge, pool: tuple[ObjectScene, ...], yaw_deg: float, observed: np.ndarray,
+                  config: PlausibleVariantsConfig) -> Variants:
+    """The scenario's own boxes placed as the view allows.
+
+    Each box of ``pool`` stands at the seen box's yaw or a quarter turn from it (the scenario turns boxes by 0 or 90
+    degrees, give or take 10; the seen face shows which), with its face nearest the camera where the seen box's is
+    (the camera sees that face through the slit) and its height within ``face_step`` of the seen box's (the camera
+    sees its top edge). It is moved sideways in ``face_step`` steps to every place where it covers the observed
+    points (``observed``: (M, 3) world). Nothing here reads where the scene put the box, which the camera's aim
+    would give away (the scenario aims the camera at the box's centre).
+    """
+    forward = judge.camera_pose[:3, 2].copy()
+    forward[2] = 0.0
+    forward /= np.linalg.norm(forward)
+    side = np.array([-forward[1], forward[0], 0.0])
+    seen = posed_box_corners(judge.shape, judge.object_pose)
+    front, height = float((seen @ forward).min()), float(seen[:, 2].max())
+    lo, hi = float((observed @ side).min()), float((observed @ side).max())
+    placed = []
+    for scene in pool:
+        for yaw in (yaw_deg, yaw_deg + 90.0):
+            base = object_pose(scene.shape.mesh, yaw)
+            corners = posed_box_corners(scene.shape, base)
+            if abs(float(corners[:, 2].max()) - height) > config.face_step:
+                continue
+            along, across = corners @ forward, corners @ side
+            # Lateral shifts that keep the box over every observed point, face_step apart.
+            shifts = np.arange(math.ceil((hi - across.max()) / config.face_step - 1e-9),
+                               math.floor((lo - across.min()) / config.face_step + 1e-9) + 1) * config.face_step
+            poses = []
+            for shift in shifts:
+                pose = base.copy()
+                pose[:3, 3] += (front - along.min()) * forward + shift * side
+                poses.append(pose)
+            if poses:
+                placed.append(judge.placed(scene, poses))
+    if not placed:  # no box of the pool is as tall as the seen one: the truth alone, as least violating
+        placed.append(judge.turned(np.zeros(1)))
+    grids = np.concatenate(placed)
+    return Variants(grids, *judge.judge(grids), len(grids))
+
+
+def spread_choice(variants: Variants, num_samples: int) -> PlausibleShapes:
+    """``num_samples`` of the accepted variants chosen and weighted as the checked sampler chooses; when it would
+    accept none, the least-violating ones, as it does."""
+    pool = np.flatnonzero(variants.ok)
+    if len(pool) == 0:
+        pool = np.argsort(variants.badness, kind="stable")[:num_samples]
+    flat = variants.grids[pool].reshape(len(pool), -1)
+    picked, cell = farthest_point_selection(BitRows.pack(flat), int(num_samples))
+    weights = np.bincount(cell, minlength=len(picked)).astype(np.float64)
+    return PlausibleShapes(variants.grids[pool[picked]], (weights / weights.sum()).astype(np.float32),
+                           variants.judged, int(variants.ok.sum()))
 
 
 def plausible_shapes(judge: VariantJudge, num_samples: int, config: PlausibleVariantsConfig | None = None,
-                     seed: int = 0, yaw_deg: float = 0.0,
-                     yaw_range_deg: tuple[float, float] | None = None) -> PlausibleShapes:
-    """``num_samples`` variants of the judge's object that its view allows, chosen and weighted as the checked
-    sampler chooses (see the module docstring); the true shape alone when the check accepts no variant.
-
-    ``yaw_range_deg`` (mugs): propose only the turns the scene's own prior allows (the mug is at ``yaw_deg``); the
-    accepted turns are then the exact posterior of the handle's direction given the view, for that scenario.
-    """
+                     seed: int = 0) -> PlausibleShapes:
+    """``num_samples`` variants of the judge's object that its view allows (a mug's turns, another object's face
+    stretches), chosen and weighted as the checked sampler chooses."""
     config = config or PlausibleVariantsConfig()
     if judge.shape.handle is not None:
-        accepted, judged = mug_variants(judge, config, yaw_deg, yaw_range_deg)
-    else:
-        accepted, judged = box_variants(judge, config, np.random.default_rng(seed))
-    if len(accepted) == 0:
-        truth = judge.turned(np.zeros(1))
-        return PlausibleShapes(truth, np.ones(1, dtype=np.float32), judged, 0)
-    flat = accepted.reshape(len(accepted), -1)
-    picked, cell = farthest_point_selection(BitRows.pack(flat), int(num_samples))
-    weights = np.bincount(cell, minlength=len(picked)).astype(np.float64)
-    return PlausibleShapes(accepted[picked], (weights / weights.sum()).astype(np.float32), judged, len(accepted))
+        return spread_choice(mug_variants(judge, config), num_samples)
+    return spread_choice(box_variants(judge, config, np.random.default_rng(seed)), num_samples)
+
+
+def posterior_shapes(judge: VariantJudge, num_samples: int, yaw_deg: float,
+                     yaw_range_deg: tuple[float, float] | None, pool: tuple[ObjectScene, ...], observed: np.ndarray,
+                     config: PlausibleVariantsConfig | None = None) -> PlausibleShapes:
+    """``num_samples`` of what the view allows under the scenario's own prior: a mug's turns that keep it (now at
+    ``yaw_deg``) inside ``yaw_range_deg``, the exact posterior of its hidden handle; or the scenario's own boxes
+    (``pool``) placed as :func:`pool_variants` places them. Chosen and weighted as the checked sampler chooses."""
+    config = config or PlausibleVariantsConfig()
+    if judge.shape.handle is not None:
+        return spread_choice(mug_variants(judge, config, yaw_deg, yaw_range_deg), num_samples)
+    return spread_choice(pool_variants(judge, pool, yaw_deg, observed, config), num_samples)

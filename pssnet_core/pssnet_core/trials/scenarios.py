@@ -115,6 +115,7 @@ class TrialScene:
             MuJoCo's free camera), chosen to see the hand and the object past the clutter.
         yaw_range_deg: the range the scenario draws a mug's yaw from (its prior over where the handle points), or
             None (boxes).
+        pool: ray-casting scenes of the objects the scenario draws from (its prior over the object), boxes only.
     """
 
     scenario: str
@@ -125,6 +126,7 @@ class TrialScene:
     notes: dict[str, float | str]
     film_view: tuple[float, float, float] = (0.6, 215.0, -30.0)
     yaw_range_deg: tuple[float, float] | None = None
+    pool: tuple[ObjectScene, ...] = ()
 
     def ground_truth(self, grid: GridPose) -> np.ndarray:
         """(N, N, N) true occupancy of the object in an observation grid (the project's one definition)."""
@@ -289,7 +291,8 @@ class SceneFactory:
             physics = PhysicsScene(shape, self.parts(shape), pose, clutter, exit_path)
             # From behind and above (the robot's side); the box's wall stands behind it, so look from nearer.
             film_view = (0.45, 240.0, -30.0) if scenario == "box_slit" else (0.6, 215.0, -30.0)
-            return TrialScene(scenario, index, physics, view, object_scene, notes, film_view, yaw_range)
+            pool = tuple(self._object_scene(b) for b in self.boxes) if shape.handle is None else ()
+            return TrialScene(scenario, index, physics, view, object_scene, notes, film_view, yaw_range, pool)
         raise ScenarioError(f"no valid {scenario} scene {index} in {MAX_ATTEMPTS} draws")
 
     # ---------------------------------------------------------------------------------------- builders

@@ -18,9 +18,10 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
 - ``plausible``: the true object changed only where the view cannot see, checked, chosen and weighted as the
   node's checked sampler does (:mod:`~pssnet_core.trials.plausible`): what a sampler that draws exactly what the
   view allows would lift: every image-consistent sampler that spans what the view allows, under this planner;
-- ``handle_posterior``: ``plausible`` restricted to the handle directions the scenario itself draws (mugs; other
-  objects as ``plausible``): the exact posterior of the hidden handle given the view, so the ceiling of any
-  sampler that cannot see the handle, under this planner;
+- ``scene_posterior``: what the view allows under the scenario's own prior: a mug's turns within the handle
+  directions the scenario draws (the exact posterior of the hidden handle given the view), or the scenario's own
+  boxes placed as the view allows; the ceiling of a sampler that learned the objects' distribution, under this
+  planner;
 - ``random``: a uniformly random candidate among PSSNet's that hold for at least one sample (a lower bound).
 """
 
@@ -37,7 +38,7 @@ from pssnet_core.inference import Completer
 from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineResult
 from pssnet_core.trials import STRATEGIES
 from pssnet_core.trials.physics import PhysicsConfig
-from pssnet_core.trials.plausible import PlausibleVariantsConfig, VariantJudge, plausible_shapes
+from pssnet_core.trials.plausible import PlausibleVariantsConfig, VariantJudge, plausible_shapes, posterior_shapes
 from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter
 
 
@@ -142,13 +143,16 @@ class Strategist:
                 rng = np.random.default_rng([seed, zlib.crc32(b"random")])
                 pick = int(rng.choice(holding)) if len(holding) else None
                 choices[name] = self._choice(name, pssnet_grasps, pick, camera)
-            elif name in ("plausible", "handle_posterior"):
+            elif name in ("plausible", "scene_posterior"):
                 judge = VariantJudge(scene.physics.shape, scene.physics.object_pose, camera,
                                      observation.known_occupied, observation.known_free, observation.pose,
                                      self.sampler_config)
-                prior = scene.yaw_range_deg if name == "handle_posterior" else None
-                shapes = plausible_shapes(judge, self.num_samples, PlausibleVariantsConfig(), seed,
-                                          float(scene.notes.get("yaw_deg", 0.0)), prior)
+                if name == "plausible":
+                    shapes = plausible_shapes(judge, self.num_samples, PlausibleVariantsConfig(), seed)
+                else:
+                    observed = observation.points @ camera[:3, :3].T + camera[:3, 3]
+                    shapes = posterior_shapes(judge, self.num_samples, float(scene.notes.get("yaw_deg", 0.0)),
+                                              scene.yaw_range_deg, scene.pool, observed)
                 choices[name] = self._choice(name, self._plan(shapes.occupancy, result, scene, seed, shapes.weights),
                                              0, camera)
             elif name == "vae":
