@@ -32,16 +32,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
 
 from pssnet_core.data.scenes import ObjectScene, object_pose, posed_box_corners
 from pssnet_core.evaluation.handles import turned
-from pssnet_core.geometry import GridPose, solid_occupancy
+from pssnet_core.geometry import GridPose
 from pssnet_core.sampling import CheckedSamplerConfig, GridCheck
 from pssnet_core.shapes import Shape
 from pssnet_core.spread import BitRows, farthest_point_selection
-
-#: the largest stretch of an object's horizontal extent :meth:`VariantJudge.stretched` voxelises
-STRETCH_LIMIT = 8.0
 
 
 @dataclass(frozen=True)
@@ -89,6 +87,16 @@ class PlausibleShapes:
     accepted: int
 
 
+def _stretched(shape: Shape, bounds: np.ndarray) -> Shape:
+    """``shape`` mapped affinely along x and y so that its horizontal bounds become ``bounds`` ((2, 2): min, max of
+    x and y; the other faces stay where they are)."""
+    old = shape.bounds[:, :2]
+    vertices = np.array(shape.mesh.vertices, dtype=np.float64)
+    vertices[:, :2] = bounds[0] + (vertices[:, :2] - old[0]) * (bounds[1] - bounds[0]) / (old[1] - old[0])
+    return Shape(identity=shape.identity, mesh=trimesh.Trimesh(vertices=vertices, faces=np.asarray(shape.mesh.faces),
+                                                               process=False))
+
+
 @dataclass(frozen=True)
 class Variants:
     """Proposed variants and the check's verdict.
@@ -126,35 +134,9 @@ class VariantJudge:
                          for a in azimuths_deg])
 
     def stretched(self, bounds: list[np.ndarray]) -> np.ndarray:
-        """(B, N, N, N) bool: the object mapped affinely along its own x and y so that its horizontal bounds become
-        each of ``bounds`` ((2, 2): min and max of x and y; the other faces stay where they are).
-
-        The project's occupancy of the stretched solid, without building it: a point lies inside it where the
-        inverse map takes it inside the true object, and its surface is the true surface's samples mapped
-        forwards, drawn up to ``STRETCH_LIMIT`` times denser so that they stay dense enough for the voxels when
-        stretched.
-        """
-        old = self.shape.bounds[:, :2]
-        surface = self._scene.surface(self.grid.voxel_size / STRETCH_LIMIT)
-        camera_from_object = np.linalg.inv(self.camera_pose) @ self.object_pose
-        grids = []
-        for b in bounds:
-            scale = (b[1] - b[0]) / (old[1] - old[0])
-            if not np.all((scale > 0) & (scale <= STRETCH_LIMIT)):
-                raise ValueError(f"a stretch by {scale} leaves (0, {STRETCH_LIMIT}]")
-            shift = b[0] - old[0] * scale
-            # The samples are drawn independently, so a prefix of them is as dense as the stretch needs.
-            needed = math.ceil(len(surface) * (max(float(scale.max()), 1.0) / STRETCH_LIMIT) ** 2)
-            mapped = surface[:needed].copy()
-            mapped[:, :2] = mapped[:, :2] * scale + shift
-
-            def inside(points: np.ndarray, scale: np.ndarray = scale, shift: np.ndarray = shift) -> np.ndarray:
-                back = points.copy()
-                back[:, :2] = (back[:, :2] - shift) / scale
-                return self._scene.occupancy(back)
-
-            grids.append(solid_occupancy(self.grid, camera_from_object, mapped, inside))
-        return np.stack(grids)
+        """(B, N, N, N) bool: the object with each of the horizontal ``bounds`` (see :func:`_stretched`)."""
+        return np.stack([ObjectScene(_stretched(self.shape, b), threads=1).ground_truth(
+            self.object_pose, self.grid, self.camera_pose) for b in bounds])
 
     def placed(self, scene: ObjectScene, poses: list[np.ndarray]) -> np.ndarray:
         """(P, N, N, N) bool: another object (its ray-casting scene) at each world pose."""
