@@ -21,8 +21,10 @@ does). So this strategy is the node's default sampler with perfect proposals: th
 ``pssnet`` is what the network's proposals cost.
 
 The ``scene_posterior`` strategy proposes only what the scenario itself could have drawn (:func:`posterior_shapes`):
-a mug's turns within the scenario's yaw range (the exact posterior of the hidden handle given the view), or the
-scenario's own boxes placed as the view allows. No sampler that learned the objects' distribution can expect more.
+a mug's turns within the scenario's yaw range, the exact posterior of the hidden handle given the view (no sampler
+that learned the mugs' distribution can expect more); or the scenario's own boxes at every sideways place the view
+allows, a posterior under that stated prior (the scenario's own prior places the box where the camera aims, which
+would give its hidden depth away).
 """
 
 from __future__ import annotations

@@ -18,10 +18,10 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
 - ``plausible``: the true object changed only where the view cannot see, checked, chosen and weighted as the
   node's checked sampler does (:mod:`~pssnet_core.trials.plausible`): what a sampler that draws exactly what the
   view allows would lift: every image-consistent sampler that spans what the view allows, under this planner;
-- ``scene_posterior``: what the view allows under the scenario's own prior: a mug's turns within the handle
-  directions the scenario draws (the exact posterior of the hidden handle given the view), or the scenario's own
-  boxes placed as the view allows; the ceiling of a sampler that learned the objects' distribution, under this
-  planner;
+- ``scene_posterior``: a mug's turns within the handle directions the scenario draws (the exact posterior of the
+  hidden handle given the view: the ceiling of a sampler that learned the mugs' distribution, under this planner), or
+  the scenario's own boxes at every sideways place the view allows (a posterior under that stated prior; the
+  scenario's own would read the box's place from the camera's aim);
 - ``random``: a uniformly random candidate among PSSNet's that hold for at least one sample (a lower bound).
 """
 
