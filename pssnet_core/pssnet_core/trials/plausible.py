@@ -222,8 +222,9 @@ def pool_variants(judge: VariantJudge, pool: tuple[ObjectScene, ...], yaw_deg: f
                   config: PlausibleVariantsConfig) -> Variants:
     """The scenario's own boxes placed as the view allows.
 
-    Each box of ``pool`` stands at the seen box's yaw or a quarter turn from it (the scenario turns boxes by 0 or 90
-    degrees, give or take 10; the seen face shows which), with its face nearest the camera where the seen box's is
+    Each box of ``pool`` stands at the seen box's yaw or a quarter turn from it (the seen face shows the yaw only up
+    to a quarter turn: through a slit narrower than the face, wide and narrow faces look alike), with its face
+    nearest the camera where the seen box's is
     (the camera sees that face through the slit) and its height within ``face_step`` of the seen box's (the camera
     sees its top edge). It is moved sideways in ``face_step`` steps to every place where it covers the observed
     points (``observed``: (M, 3) world). Nothing here reads where the scene put the box, which the camera's aim
