@@ -26,6 +26,7 @@ from pssnet_core.geometry import GridPose
 from pssnet_core.grasps import GraspConfig, GripperConfig, plan_grasps
 from pssnet_core.inference import Completer
 from pssnet_core.shapes import make_shape
+from pssnet_core.spread import BitRows
 from pssnet_core.trials.cli import chosen_strategies
 from pssnet_core.trials.collision import ConvexPart, decompose, measure_faithfulness
 from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, run_trial
@@ -337,7 +338,8 @@ def test_plausible_variants_keep_what_the_view_saw_and_vary_what_it_did_not(fact
 def test_when_the_check_accepts_no_variant_the_least_violating_are_chosen():
     grids = np.zeros((4, 2, 2, 2), dtype=bool)
     grids[1, 0, 0, 0] = grids[2, 1, 1, 1] = grids[3] = True
-    chosen = spread_choice(Variants(grids, np.zeros(4, bool), np.array([3.0, 0.5, 1.0, 9.0]), 4), 2)
+    packed = BitRows.pack(grids.reshape(4, -1))
+    chosen = spread_choice(Variants(grids, packed, np.zeros(4, bool), np.array([3.0, 0.5, 1.0, 9.0]), 4), 2)
     assert chosen.accepted == 0 and chosen.proposed == 4
     assert [g.sum() for g in chosen.occupancy] == [1, 1] and chosen.weights.tolist() == [0.5, 0.5]
 

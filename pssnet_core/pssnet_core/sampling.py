@@ -190,6 +190,25 @@ class GridCheck:
             missed = np.zeros(occupancy.shape[0])
         return missed.astype(np.float64), packed.count_within(self.deep_free)
 
+    def badness(self, missed: np.ndarray, free: np.ndarray) -> np.ndarray:
+        """How badly each proposal violates the view: its :meth:`violations`, missed observed voxels and occupied
+        deep-free voxels, on one scale (voxels)."""
+        return missed * max(len(self.observed_rays), 1) + free
+
+
+def spread_selection(packed: BitRows, ok: np.ndarray, badness: np.ndarray, count: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The checked sampler's choice among judged proposals (``packed``): up to ``count`` of the accepted ones
+    (``ok``), spread by farthest-point selection on Jaccard distance, or of the ``count`` least violating
+    (``badness``) when none is accepted. Returns the chosen proposals' indices and their weights, the share of the
+    pool in each one's cell (summing to 1)."""
+    pool = np.flatnonzero(ok)
+    if len(pool) == 0:
+        pool = np.argsort(badness, kind="stable")[:count]
+    picked, cell = farthest_point_selection(packed.subset(pool), count)
+    weights = np.bincount(cell, minlength=len(picked)).astype(np.float64)
+    return pool[picked], weights / weights.sum()
+
 
 @dataclass(frozen=True)
 class CheckedResult(CompletionResult):
@@ -335,17 +354,10 @@ class CheckedSampler:
         accepted = np.flatnonzero(ok)
         note = ""
         if len(accepted) == 0:
-            # Least violating first: missed observed voxels and free-space voxels on one scale (voxels).
-            badness = missed * max(len(check.observed_rays), 1) + free
-            pool = np.argsort(badness, kind="stable")[:max(int(num_samples), 1)]
             note = (f"no proposal of {len(ok)} agrees with the view (delta {self.sampler_config.delta:g} m); "
-                    f"returning the {len(pool)} least-violating ones")
-        else:
-            pool = accepted
-        picked, cell = farthest_point_selection(packed.subset(pool), int(num_samples))
-        weights = np.bincount(cell, minlength=len(picked)).astype(np.float64)
-        weights /= weights.sum()
-        chosen = pool[picked]
+                    f"returning the {min(int(num_samples), len(ok))} least-violating ones")
+        chosen, weights = spread_selection(packed, ok, check.badness(missed, free), int(num_samples))
+        distinct = len(chosen)
         if len(chosen) < num_samples:  # repeat the heaviest; each copy carries an equal part of its weight
             order = np.argsort(-weights, kind="stable")
             extra = order[np.arange(int(num_samples) - len(chosen)) % len(order)]
@@ -354,7 +366,7 @@ class CheckedSampler:
             weights = (weights / copies)[positions]
             chosen = chosen[positions]
             if not note:
-                note = (f"only {len(picked)} distinct completions among {len(accepted)} of {len(ok)} proposals agree "
+                note = (f"only {distinct} distinct completions among {len(accepted)} of {len(ok)} proposals agree "
                         "with the view; some are repeated")
         n = self.completer.grid_size
         chosen_probs = probs[torch.as_tensor(chosen, device=probs.device)].cpu().numpy().reshape(-1, n, n, n)

@@ -39,9 +39,9 @@ import trimesh
 from pssnet_core.data.scenes import ObjectScene, object_pose, posed_box_corners
 from pssnet_core.evaluation.handles import turned
 from pssnet_core.geometry import GridPose
-from pssnet_core.sampling import CheckedSamplerConfig, GridCheck
+from pssnet_core.sampling import CheckedSamplerConfig, GridCheck, spread_selection
 from pssnet_core.shapes import Shape
-from pssnet_core.spread import BitRows, farthest_point_selection
+from pssnet_core.spread import BitRows
 
 
 @dataclass(frozen=True)
@@ -105,12 +105,14 @@ class Variants:
 
     Attributes:
         grids: (P, N, N, N) bool.
+        packed: the same, bit-packed (:class:`~pssnet_core.spread.BitRows`).
         ok: (P,) the check accepts it.
-        badness: (P,) how badly it violates the view (:meth:`VariantJudge.judge`).
+        badness: (P,) how badly it violates the view (:meth:`pssnet_core.sampling.GridCheck.badness`).
         judged: variants judged in all (also those screened out before ``grids``).
     """
 
     grids: np.ndarray
+    packed: BitRows
     ok: np.ndarray
     badness: np.ndarray
     judged: int
@@ -144,17 +146,18 @@ class VariantJudge:
         """(P, N, N, N) bool: another object (its ray-casting scene) at each world pose."""
         return np.stack([scene.ground_truth(pose, self.grid, self.camera_pose) for pose in poses])
 
-    def judge(self, occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For (P, N, N, N) grids: which the checked sampler's check keeps, and how badly each violates the view
-        (missed observed voxels and free-space voxels on one scale, as the sampler orders them when it keeps none)."""
+    def judge(self, occupancy: np.ndarray) -> tuple[BitRows, np.ndarray, np.ndarray]:
+        """For (P, N, N, N) grids: the grids bit-packed, which of them the checked sampler's check keeps, and how
+        badly each violates the view (as the sampler orders them when it keeps none)."""
         flat = occupancy.reshape(len(occupancy), -1)
-        missed, free = self.check.violations(flat, BitRows.pack(flat))
-        badness = missed * max(len(self.check.observed_rays), 1) + free
-        return self.sampler.accepts(missed, free, np.ones(len(flat), dtype=bool)), badness
+        packed = BitRows.pack(flat)
+        missed, free = self.check.violations(flat, packed)
+        ok = self.sampler.accepts(missed, free, np.ones(len(flat), dtype=bool))
+        return packed, ok, self.check.badness(missed, free)
 
     def accepts(self, occupancy: np.ndarray) -> np.ndarray:
         """(P,) bool: which of the (P, N, N, N) grids the checked sampler's check keeps."""
-        return self.judge(occupancy)[0]
+        return self.judge(occupancy)[1]
 
 
 def face_offsets(extent: float, config: PlausibleVariantsConfig) -> np.ndarray:
@@ -262,16 +265,10 @@ def pool_variants(judge: VariantJudge, pool: tuple[ObjectScene, ...], yaw_deg: f
 
 
 def spread_choice(variants: Variants, num_samples: int) -> PlausibleShapes:
-    """``num_samples`` of the accepted variants chosen and weighted as the checked sampler chooses; when it would
-    accept none, the least-violating ones, as it does."""
-    pool = np.flatnonzero(variants.ok)
-    if len(pool) == 0:
-        pool = np.argsort(variants.badness, kind="stable")[:num_samples]
-    flat = variants.grids[pool].reshape(len(pool), -1)
-    picked, cell = farthest_point_selection(BitRows.pack(flat), int(num_samples))
-    weights = np.bincount(cell, minlength=len(picked)).astype(np.float64)
-    return PlausibleShapes(variants.grids[pool[picked]], (weights / weights.sum()).astype(np.float32),
-                           variants.judged, int(variants.ok.sum()))
+    """``num_samples`` of the variants, chosen and weighted as the checked sampler chooses
+    (:func:`pssnet_core.sampling.spread_selection`)."""
+    chosen, weights = spread_selection(variants.packed, variants.ok, variants.badness, num_samples)
+    return PlausibleShapes(variants.grids[chosen], weights.astype(np.float32), variants.judged, int(variants.ok.sum()))
 
 
 def plausible_shapes(judge: VariantJudge, num_samples: int, config: PlausibleVariantsConfig | None = None,
