@@ -101,6 +101,10 @@ def test_transitions_failed_configure_retry_and_diagnostics(ros, node, checkpoin
     refused = ros.set_parameters(model_path="/elsewhere.pt")[0]
     assert not refused.successful and "only change while the node is unconfigured" in refused.reason
     assert ros.set_parameters(num_samples=3)[0].successful  # ordinary parameters change in any state
+    # The planner's candidate options are parameters too; a list the planner refuses is refused with its reason.
+    assert ros.set_parameters(grasp_tilted_pitches=[30.0, 45.0])[0].successful
+    refused = ros.set_parameters(grasp_tilted_pitches=[95.0])[0]
+    assert not refused.successful and "tilted_pitches must be degrees in (0, 90)" in refused.reason
     assert service.wait_for_service(timeout_sec=30)  # in every state; it serves only while active
     inactive = ros.call(service, SampleCompletions.Request())
     assert inactive.status == inactive.STATUS_NOT_ACTIVE and not inactive.success

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import array
 import re
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from pssnet_ros.params import (
     config_default,
     default_yaml,
     defaults,
+    from_ros,
     markdown_table,
     pipeline_config,
 )
@@ -75,6 +77,13 @@ def test_descriptors_carry_type_range_and_when_they_may_change():
     ({"nonsense": 1}, "unknown parameter 'nonsense'"),
     ({"grasp_clearance": 0.05}, r"clearance must be in \[0, max_opening/2\) m, got 0.05"),
     ({"grasp_top_yaws": 0, "grasp_side_yaws": 0}, "no approach direction"),
+    ({"grasp_tilted_pitches": "45"}, r"grasp_tilted_pitches must be a list of finite numbers, got '45'"),
+    ({"grasp_tilted_pitches": [95.0]}, r"tilted_pitches must be degrees in \(0, 90\)"),
+    ({"grasp_side_rolls": [0.0, float("inf")]}, "grasp_side_rolls must be finite numbers"),
+    ({"grasp_shallow_depths": [0.06]}, r"shallow_depths must be in \(0, finger_length=0.05\)"),
+    ({"grasp_rank_by": "luck"}, "grasp_rank_by must be one of expected_grip, fraction, got 'luck'"),
+    ({"grasp_holds_axial_load": 1}, "grasp_holds_axial_load must be a bool"),
+    ({"grasp_friction": 3.0}, r"grasp_friction must be in \[0.05, 2.0\], got 3.0"),
 ])
 def test_invalid_values_are_rejected_with_a_reason(changes, reason):
     values = {**defaults(), **changes}
@@ -119,7 +128,7 @@ def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
 
 def test_every_pipeline_parameter_names_a_config_field_with_its_default():
     fields = [spec.field for spec in PARAMETERS if spec.field]
-    assert len(fields) == len(set(fields)) == 32
+    assert len(fields) == len(set(fields)) == 41
     for spec in PARAMETERS:
         if spec.field:
             assert spec.default == config_default(spec.field), spec.name
@@ -134,7 +143,10 @@ def test_every_pipeline_parameter_names_a_config_field_with_its_default():
                "grasp_palm_depth": 0.03, "grasp_min_object_width": 0.004, "grasp_clearance": 0.004,
                "grasp_max_candidates": 300, "grasp_top_yaws": 4, "grasp_side_yaws": 6, "grasp_top_k": 3,
                "grasp_min_score": 0.25, "sampler": "posterior", "check_delta": 0.02, "proposals_per_sample": 5,
-               "up_check_deg": 10.0}
+               "up_check_deg": 10.0, "grasp_side_rolls": [0.0, 45.0, 90.0], "grasp_tilted_pitches": [30.0, 60.0],
+               "grasp_shallow_depths": [], "grasp_thin_anchor_bias": 2.0, "grasp_rank_by": "fraction",
+               "grasp_grip_force": 40.0, "grasp_holds_axial_load": True, "grasp_friction": 0.8,
+               "grasp_object_density": 400.0}
     assert set(changed) == {s.name for s in PARAMETERS if s.field}
     config = pipeline_config({**values, **changed})
     for name, value in changed.items():
@@ -146,3 +158,30 @@ def config_value(config, path: str):
     for part in path.split("."):
         config = getattr(config, part)
     return config
+
+
+def test_an_empty_list_in_a_parameter_file_turns_an_option_off(tmp_path):
+    """rcl reads ``[]`` in a parameter file as unset (an empty list has no element type): the node takes it as
+    empty for a list parameter, and still refuses an unset ``up_vector``."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    grasp_tilted_pitches: []\n")
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=102, signal_handler_options=SignalHandlerOptions.NO,
+               args=["--ros-args", "--params-file", str(params)])
+    try:
+        node = rclpy.create_node("empty_list_test", context=context)
+        spec = SPECS["grasp_tilted_pitches"]
+        raw = node.declare_parameter(spec.name, list(spec.default), spec.descriptor()).value
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
+    assert raw is None  # what rcl makes of it
+    values = {**defaults(), spec.name: from_ros(spec.name, raw)}
+    assert values[spec.name] == [] and check_values(values) is None
+    assert pipeline_config(values).grasps.tilted_pitches == ()
+    assert from_ros("up_vector", None) is None and "up_vector must be a list of 3 numbers" in check_values(
+        {**defaults(), "up_vector": None})
+    assert from_ros("grasp_side_rolls", array.array("d", [0.0, 90.0])) == [0.0, 90.0]  # as rclpy gives arrays

@@ -83,7 +83,15 @@ from pssnet_ros.completion_io import (
 from pssnet_ros.diagnostics import CompletionHealth, diagnostic_status
 from pssnet_ros.heap import trim_heap, use_one_arena
 from pssnet_ros.newest_slot import NewestSlot
-from pssnet_ros.params import CONFIGURE_ONLY, PARAMETERS, SPECS, check_values, markdown_table, pipeline_config
+from pssnet_ros.params import (
+    CONFIGURE_ONLY,
+    PARAMETERS,
+    SPECS,
+    check_values,
+    from_ros,
+    markdown_table,
+    pipeline_config,
+)
 from pssnet_ros.rclpy_fixes import refuse_unknown_transitions
 from pssnet_ros.shm import clean_stale_shm
 from pssnet_ros.spinning import spin_until_shutdown
@@ -224,10 +232,10 @@ class CompletionNode(LifecycleNode):
         for spec in PARAMETERS:
             default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
             try:
-                values[spec.name] = self.declare_parameter(spec.name, default, spec.descriptor()).value
+                values[spec.name] = from_ros(spec.name, self.declare_parameter(spec.name, default,
+                                                                               spec.descriptor()).value)
             except (InvalidParameterValueException, InvalidParameterTypeException) as error:
                 raise StartupError(f"invalid parameter {spec.name}: {error}") from None
-        values["up_vector"] = [float(v) for v in values["up_vector"]]
         return values
 
     def _load_pipeline(self, values: dict[str, Any]) -> CompletionPipeline:
@@ -385,7 +393,7 @@ class CompletionNode(LifecycleNode):
             return SetParametersResult(successful=True)
         values = dict(self._values)
         for param in params:
-            values[param.name] = param.value
+            values[param.name] = from_ros(param.name, param.value)
         pipeline = self.pipeline
         fixed = [p.name for p in params if p.name in CONFIGURE_ONLY and p.value != self._values[p.name]]
         if fixed and pipeline is not None:
@@ -404,8 +412,7 @@ class CompletionNode(LifecycleNode):
         if not params:
             return
         for param in params:
-            self._values[param.name] = param.value
-        self._values["up_vector"] = [float(v) for v in self._values["up_vector"]]
+            self._values[param.name] = from_ros(param.name, param.value)
         pipeline = self.pipeline
         if pipeline is not None:
             pipeline.config = pipeline_config(self._values)

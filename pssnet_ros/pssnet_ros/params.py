@@ -51,6 +51,8 @@ class ParamSpec:
         configure_only: read on the lifecycle configure; changes are refused while the node is configured.
         choices: allowed values (strings only).
         constraints: extra rule in words (shown in the descriptor's additional_constraints).
+        length: arrays only: the exact number of values (None = any number, none included).
+        nonzero: arrays only: not every value may be zero (a direction).
     """
 
     name: str
@@ -62,6 +64,8 @@ class ParamSpec:
     configure_only: bool = False
     choices: tuple[str, ...] = ()
     constraints: str = ""
+    length: int | None = None
+    nonzero: bool = False
 
     def __post_init__(self) -> None:
         if self.default is None:
@@ -157,7 +161,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("bottom_margin", "grid placement: voxels below the lowest observed point", 0.0, 16.0,
               field="bottom_margin", constraints="< grid size / 2"),
     ParamSpec("up_vector", "up (against gravity) in the camera optical frame; [0, -1, 0] for a level camera",
-              field="up_vector",
+              field="up_vector", length=3, nonzero=True,
               constraints=f"3 finite numbers, length {UP_VECTOR_LENGTH[0]:g} to {UP_VECTOR_LENGTH[1]:g}"),
     ParamSpec("estimate_up", "estimate up from the support plane around the object (RANSAC); up_vector is then "
               "the prior that orients it", field="estimate_up"),
@@ -207,6 +211,28 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               field="grasps.top_yaws"),
     ParamSpec("grasp_side_yaws", "horizontal approach directions of side grasps (0 = no side grasps)", 0, 360,
               field="grasps.side_yaws", constraints="grasp_top_yaws or grasp_side_yaws > 0"),
+    ParamSpec("grasp_side_rolls", "closing-axis angles of side and tilted grasps about the approach, degrees: 0 = "
+              "horizontal, 90 = vertical", field="grasps.side_rolls", constraints="finite degrees"),
+    ParamSpec("grasp_tilted_pitches", "approaches pitched this far below the horizontal at every side yaw, degrees "
+              "(they reach a handle under a shelf); [] = none", field="grasps.tilted_pitches",
+              constraints="each in (0, 90)"),
+    ParamSpec("grasp_shallow_depths", "besides the deepest grasp, grasps whose fingertips go only this far past the "
+              "first contact, metres (a handle pinch clear of the body); [] = deepest only",
+              field="grasps.shallow_depths", constraints="each in (0, grasp_finger_length)"),
+    ParamSpec("grasp_thin_anchor_bias", "candidates are anchored on thin parts (handles) more often: draw "
+              "probability ~ local density ^ -bias; 0 = uniform", 0.0, 4.0, field="grasps.thin_anchor_bias"),
+    ParamSpec("grasp_rank_by", "expected_grip = by the weighted share of completions each grasp holds firmly "
+              "(pad contact x weight held); fraction = by the share of completions it holds", field="grasps.rank_by",
+              choices=("expected_grip", "fraction")),
+    ParamSpec("grasp_grip_force", "gripper: force each finger presses with, newtons (for the weight check)", 0.1,
+              1000.0, field="grasps.gripper.grip_force"),
+    ParamSpec("grasp_holds_axial_load", "gripper: the fingers hold a load along the closing axis (a stiff, "
+              "non-backdrivable drive); false = force-controlled fingers that follow it",
+              field="grasps.gripper.holds_axial_load"),
+    ParamSpec("grasp_friction", "friction coefficient between finger pads and object (for the weight check)", 0.05,
+              2.0, field="grasps.friction"),
+    ParamSpec("grasp_object_density", "density assumed for every completion when the weight check turns volume "
+              "into weight, kg/m^3", 10.0, 25000.0, field="grasps.object_density"),
     ParamSpec("grasp_top_k", "grasps returned, best first", 1, 1000, field="grasp_top_k"),
     ParamSpec("grasp_min_score", "grasps holding for a smaller fraction of the completions are not returned",
               0.0, 1.0, field="grasp_min_score"),
@@ -219,6 +245,21 @@ CONFIGURE_ONLY: frozenset[str] = frozenset(spec.name for spec in PARAMETERS if s
 def defaults() -> dict[str, Any]:
     """Name -> default value (arrays as lists)."""
     return {s.name: list(s.default) if isinstance(s.default, tuple) else s.default for s in PARAMETERS}
+
+
+def from_ros(name: str, value: Any) -> Any:
+    """A value as rclpy hands it over, in the form :func:`check_values` takes: arrays as lists of floats (rclpy
+    gives ``array.array``), and an unset variable-length array as empty (rcl reads ``[]`` in a parameter file as
+    unset: it cannot tell the element type of an empty list)."""
+    spec = SPECS.get(name)
+    if spec is None or spec.ros_type != ParameterType.PARAMETER_DOUBLE_ARRAY:
+        return value
+    if value is None:
+        return [] if spec.length is None else None
+    try:
+        return [float(v) for v in value]
+    except (TypeError, ValueError):
+        return value  # check_values says what is wrong with it
 
 
 def check_values(values: dict[str, Any]) -> str | None:
@@ -245,13 +286,17 @@ def check_values(values: dict[str, Any]) -> str | None:
 def _check_one(spec: ParamSpec, value: Any) -> str | None:
     name = spec.name
     if spec.ros_type == ParameterType.PARAMETER_DOUBLE_ARRAY:
+        count = "" if spec.length is None else f"{spec.length} "
         try:
+            if isinstance(value, str | bytes):
+                raise TypeError
             vector = [float(v) for v in value]
         except (TypeError, ValueError):
-            return f"{name} must be a list of 3 numbers, got {value!r}"
-        if len(vector) != 3 or not all(math.isfinite(v) for v in vector) or not any(vector):
-            return f"{name} must be 3 finite numbers, not all zero, got {list(value)}"
-        return None  # its length is the pipeline config's check
+            return f"{name} must be a list of {count or 'finite '}numbers, got {value!r}"
+        if (spec.length is not None and len(vector) != spec.length) or not all(math.isfinite(v) for v in vector) \
+                or (spec.nonzero and not any(vector)):
+            return f"{name} must be {count}finite numbers{', not all zero' if spec.nonzero else ''}, got {list(value)}"
+        return None  # the values' own ranges (a direction's length, a pitch's) are the pipeline config's checks
     expected = {ParameterType.PARAMETER_BOOL: (bool,), ParameterType.PARAMETER_INTEGER: (int,),
                 ParameterType.PARAMETER_DOUBLE: (float, int), ParameterType.PARAMETER_STRING: (str,)}[spec.ros_type]
     if not isinstance(value, expected) or (spec.ros_type != ParameterType.PARAMETER_BOOL and isinstance(value, bool)):
