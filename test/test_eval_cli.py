@@ -165,7 +165,7 @@ def test_evaluate_scores_each_model_with_both_samplers(tiny_data, tiny_checkpoin
     from pssnet_core.evaluation.cli import load_completers
     from pssnet_core.models.checkpoint import save_checkpoint
     from pssnet_core.models.registry import build_model, default_config
-    from pssnet_core.sampling import CheckedSampler
+    from pssnet_core.sampling import CheckedSampler, CheckedSamplerConfig
 
     out = tmp_path / "results"
     assert main(["evaluate", "--models", "vae", "--checkpoints", str(tiny_checkpoint), "--data", str(tiny_data),
@@ -183,6 +183,15 @@ def test_evaluate_scores_each_model_with_both_samplers(tiny_data, tiny_checkpoin
     assert set(completers) == {"vae_checked", "recgan"} and isinstance(completers["vae_checked"], CheckedSampler)
     assert completers["vae_checked"].sampler_config.delta == 0.02
     assert "recgan" in capsys.readouterr().err
+    # --sampler-option sets the checked sampler's other parameters; a bad one is refused before anything runs.
+    tuned = load_completers(["vae"], str(tiny_checkpoint / "vae.pt"), "cpu", 1, ("checked",), 0.02,
+                            sampler_options=("max_free_voxels=5", "max_missed_fraction=0.1"))
+    assert tuned["vae_checked"].sampler_config == CheckedSamplerConfig(delta=0.02, max_free_voxels=5,
+                                                                       max_missed_fraction=0.1)
+    assert main(["evaluate", "--models", "vae", "--checkpoints", str(tiny_checkpoint), "--data", str(tiny_data),
+                 "--out", str(out), "--samplers", "checked", "--sampler-option", "max_free_voxels=many"]) == 2
+    assert "--sampler-option: sampler option 'max_free_voxels=many': 'many' is not an integer" in \
+        capsys.readouterr().err
     assert main(["evaluate", "--models", "vae", "--checkpoints", str(tiny_checkpoint), "--data", str(tiny_data),
                  "--out", str(out), "--samplers", "best"]) == 2
     assert "samplers must be" in capsys.readouterr().err

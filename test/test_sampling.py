@@ -256,3 +256,25 @@ def test_pipeline_with_the_checked_sampler_and_the_up_vector_check():
     np.testing.assert_allclose(level.weights, 0.2)
     with pytest.raises(ValueError, match="sampler"):
         PipelineConfig(sampler="best")
+
+
+def test_checked_config_with_parses_command_line_options_by_field_type():
+    from pssnet_core.pipeline import PipelineConfig
+    from pssnet_core.sampling import checked_config_with
+
+    config = checked_config_with(["turned_rest_low=0.75", "source_shares=0.5,0,0,0.5", "max_free_voxels=3"],
+                                 CheckedSamplerConfig(delta=0.02))
+    assert config == CheckedSamplerConfig(delta=0.02, turned_rest_low=0.75, source_shares=(0.5, 0.0, 0.0, 0.5),
+                                          max_free_voxels=3)
+    assert checked_config_with([]) == CheckedSamplerConfig()
+    for bad, reason in ((["nonsense=1"], "expected NAME=VALUE with NAME one of proposals_per_sample"),
+                        (["delta"], "expected NAME=VALUE"), (["max_free_voxels=1.5"], "'1.5' is not an integer"),
+                        (["source_shares=a,b"], "is not comma-separated numbers"),
+                        (["turned_rest_low=2"], r"turned_rest_low must lie in \[0, 1\]")):
+        with pytest.raises(ValueError, match=reason):
+            checked_config_with(bad)
+    # The pipeline applies them after its own check_delta and proposals_per_sample, and refuses bad ones at once.
+    pipeline = PipelineConfig(check_delta=0.02, sampler_options=("turned_rest_low=1.0",))
+    assert pipeline.checked_sampler_config() == CheckedSamplerConfig(delta=0.02, turned_rest_low=1.0)
+    with pytest.raises(ValueError, match="sampler option"):
+        PipelineConfig(sampler_options=("widened=3",))

@@ -271,7 +271,7 @@ def test_wilson_interval():
     assert wilson_interval(50, 100) == pytest.approx((0.4038, 0.5962), abs=1e-4)
 
 
-def test_the_command_is_registered_with_its_options():
+def test_the_command_is_registered_with_its_options(tmp_path, capsys):
     args = build_parser().parse_args(["grasp-trials", "--trials", "3", "--strategies", "oracle,random",
                                       "--scenarios", "control"])
     assert args.trials == 3 and args.strategies == ("oracle", "random") and args.scenarios == ("control",)
@@ -285,6 +285,17 @@ def test_the_command_is_registered_with_its_options():
         with pytest.raises(SystemExit):
             build_parser().parse_args(["grasp-trials", *wrong])
     assert args.func(build_parser().parse_args(["grasp-trials", "--strategies", "vae"])) == 2  # no VAE checkpoint
+    # Checked-sampler settings reach the pipeline and the run's fingerprint (a resumed run must use the same); the
+    # node's own (none) leave the fingerprint as runs made before the option recorded it.
+    options = build_parser().parse_args(["grasp-trials", "--sampler-option", "turned_rest_low=0.75",
+                                         "--sampler-option", "max_free_voxels=3"]).sampler_option
+    assert options == ["turned_rest_low=0.75", "max_free_voxels=3"]
+    tuned = TrialsConfig(sampler_options=tuple(options))
+    assert tuned.fingerprint()["sampler_options"] == options
+    assert "sampler_options" not in TrialsConfig().fingerprint()
+    bad = build_parser().parse_args(["grasp-trials", "--strategies", "oracle", "--sampler-option", "shares=1",
+                                     "--out", str(tmp_path)])
+    assert bad.func(bad) == 2 and "sampler option 'shares=1'" in capsys.readouterr().err
 
 
 def test_out_of_family_pools_hold_independent_mugs_and_boxes_the_scenes_can_use():

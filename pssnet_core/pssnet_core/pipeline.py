@@ -109,6 +109,9 @@ class PipelineConfig:
             3D-RecGAN++, is sampled as it is).
         check_delta: the checked sampler's depth tolerance (metres).
         proposals_per_sample: the checked sampler's proposals per requested sample.
+        sampler_options: ``NAME=VALUE`` settings of the checked sampler's other parameters
+            (:class:`pssnet_core.sampling.CheckedSamplerConfig`), applied last; for experiments from the command
+            line (``--sampler-option``), the node sets none.
     """
 
     num_samples: int = 20
@@ -135,6 +138,7 @@ class PipelineConfig:
     sampler: str = "checked"
     check_delta: float = 0.01
     proposals_per_sample: int = 10
+    sampler_options: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not 1 <= self.num_samples <= self.max_num_samples:
@@ -166,16 +170,17 @@ class PipelineConfig:
 
         if self.sampler not in SAMPLERS:
             raise ValueError(f"sampler must be one of {', '.join(SAMPLERS)}, got {self.sampler!r}")
-        self.checked_sampler_config()  # validates check_delta and proposals_per_sample
+        self.checked_sampler_config()  # validates check_delta, proposals_per_sample and sampler_options
         if self.grasp_top_k < 1 or not 0.0 <= self.grasp_min_score <= 1.0:
             raise ValueError(f"grasp_top_k must be >= 1 and grasp_min_score in [0, 1], got {self.grasp_top_k} and "
                              f"{self.grasp_min_score}")
 
     def checked_sampler_config(self) -> CheckedSamplerConfig:
         """The checked sampler's parameters that this config sets."""
-        from pssnet_core.sampling import CheckedSamplerConfig
+        from pssnet_core.sampling import CheckedSamplerConfig, checked_config_with
 
-        return CheckedSamplerConfig(delta=self.check_delta, proposals_per_sample=self.proposals_per_sample)
+        return checked_config_with(self.sampler_options, CheckedSamplerConfig(
+            delta=self.check_delta, proposals_per_sample=self.proposals_per_sample))
 
 
 @dataclass

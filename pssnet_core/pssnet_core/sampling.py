@@ -38,7 +38,8 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -126,6 +127,33 @@ class CheckedSamplerConfig:
         counts = np.floor(shares * total).astype(int)
         counts[int(np.argmax(shares))] += total - int(counts.sum())
         return {name: int(c) for name, c in zip(SOURCES, counts, strict=True)}
+
+
+def checked_config_with(options: Sequence[str], base: CheckedSamplerConfig | None = None) -> CheckedSamplerConfig:
+    """``base`` (default: the defaults) with ``NAME=VALUE`` overrides of its fields, as command lines give them
+    (``--sampler-option turned_rest_low=0.75``, ``--sampler-option source_shares=0.5,0,0,0.5``): each value is
+    parsed as its field's type (a tuple as comma-separated numbers), and the result is checked as any config is.
+
+    Raises:
+        ValueError: an unknown name, a value of the wrong form, or values the config refuses.
+    """
+    base = base or CheckedSamplerConfig()
+    kinds = {f.name: type(getattr(base, f.name)) for f in fields(CheckedSamplerConfig)}
+    changes: dict[str, Any] = {}
+    for option in options:
+        name, sep, text = str(option).partition("=")
+        name = name.strip()
+        if not sep or name not in kinds:
+            raise ValueError(f"sampler option {option!r}: expected NAME=VALUE with NAME one of {', '.join(kinds)}")
+        try:
+            if kinds[name] is tuple:
+                changes[name] = tuple(float(v) for v in text.split(","))
+            else:
+                changes[name] = kinds[name](text.strip())
+        except ValueError:
+            wanted = {int: "an integer", float: "a number", tuple: "comma-separated numbers"}[kinds[name]]
+            raise ValueError(f"sampler option {option!r}: {text!r} is not {wanted}") from None
+    return replace(base, **changes)
 
 
 def _grid_parts(observation: Any) -> tuple[np.ndarray, np.ndarray, GridPose]:

@@ -73,6 +73,9 @@ def _add_sampler_options(p: argparse.ArgumentParser) -> None:
                         "<model>_checked): posterior, checked or posterior,checked")
     p.add_argument("--check-delta", type=float, default=None,
                    help="the checked sampler's depth tolerance in metres (default 0.01)")
+    p.add_argument("--sampler-option", action="append", default=[], metavar="NAME=VALUE",
+                   help="set another of the checked sampler's parameters (pssnet_core.sampling.CheckedSamplerConfig, "
+                        "e.g. turned_rest_low=0.75 or source_shares=0.5,0,0,0.5); repeat for more")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -280,16 +283,18 @@ def resolve_checkpoints(models: list[str], spec: str) -> dict[str, Path]:
 
 def load_completers(models: list[str], spec: str, device: str, threads: int | None,
                     samplers: tuple[str, ...] = ("posterior",), check_delta: float | None = None,
-                    box_temperatures: tuple[float, ...] | None = None) -> dict[str, Completer]:
+                    box_temperatures: tuple[float, ...] | None = None,
+                    sampler_options: tuple[str, ...] = ()) -> dict[str, Completer]:
     """Completers by method name (``pssnet_core.inference.Completer``).
 
     With ``samplers`` holding "checked", each latent-variable model also appears as ``<model>_checked``: the same
-    checkpoint behind :class:`pssnet_core.sampling.CheckedSampler` (``check_delta`` metres, default its own). A
-    model without a latent (3D-RecGAN++) has no checked variant and is listed once, with a note on stderr.
+    checkpoint behind :class:`pssnet_core.sampling.CheckedSampler` (``check_delta`` metres, default its own; its
+    other parameters from ``sampler_options``, ``NAME=VALUE`` each). A model without a latent (3D-RecGAN++) has no
+    checked variant and is listed once, with a note on stderr.
     """
     from pssnet_core.inference import Completer as ModelCompleter
     from pssnet_core.models.base import check_box_temperature
-    from pssnet_core.sampling import SAMPLERS, CheckedSampler, CheckedSamplerConfig
+    from pssnet_core.sampling import SAMPLERS, CheckedSampler, CheckedSamplerConfig, checked_config_with
 
     if not samplers or any(s not in SAMPLERS for s in samplers):
         raise EvaluationCliError(f"samplers must be a non-empty list of {', '.join(SAMPLERS)}, got {samplers}")
@@ -300,6 +305,10 @@ def load_completers(models: list[str], spec: str, device: str, threads: int | No
         config = CheckedSamplerConfig() if check_delta is None else CheckedSamplerConfig(delta=check_delta)
     except ValueError as error:
         raise EvaluationCliError(f"--check-delta: {error}") from error
+    try:
+        config = checked_config_with(sampler_options, config)
+    except ValueError as error:
+        raise EvaluationCliError(f"--sampler-option: {error}") from error
     out: dict[str, Completer] = {}
     for (model, path), temperature in zip(resolve_checkpoints(models, spec).items(), temperatures, strict=True):
         completer = ModelCompleter.from_checkpoint(path, device=device, threads=threads)
@@ -362,7 +371,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
 
     config = evaluate_config(args)  # parameters checked before the models load
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
-                                 args.check_delta, args.model_box_temperatures)
+                                 args.check_delta, args.model_box_temperatures, tuple(args.sampler_option))
     command = " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else ""
     _write(evaluation_report(run_evaluation(config, completers), command), config.out)
     return 0
@@ -415,7 +424,7 @@ def _ambiguity_command(args: argparse.Namespace) -> int:
 
     config = ambiguity_config(args)  # parameters checked before the models load
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
-                                 args.check_delta)
+                                 args.check_delta, sampler_options=tuple(args.sampler_option))
     _write(ambiguity_report(run_ambiguity(config, completers)), config.out)
     return 0
 

@@ -41,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--num-samples", type=int, default=20, help="completions per view (the node's default: 20)")
     p.add_argument("--sampler", choices=("posterior", "checked"), default="checked",
                    help="how PSSNet and the VAE draw their samples (the node's sampler parameter; default checked)")
+    p.add_argument("--sampler-option", action="append", default=[], metavar="NAME=VALUE",
+                   help="set one of the checked sampler's parameters (pssnet_core.sampling.CheckedSamplerConfig, "
+                        "e.g. turned_rest_low=0.75); repeat for more")
     p.add_argument("--rank-by", choices=RANKINGS, default=GraspConfig.rank_by,
                    help="how the planner ranks grasps (GraspConfig.rank_by; default %(default)s)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
@@ -68,6 +71,7 @@ def run_command(args: argparse.Namespace) -> int:
     checkpoints = {"pssnet": str(args.pssnet_checkpoint or "shipped default"), "vae": str(args.vae_checkpoint or "")}
     config = TrialsConfig(scenarios=args.scenarios, strategies=chosen_strategies(args), trials=args.trials,
                           seed=args.seed, num_samples=args.num_samples, sampler=args.sampler,
+                          sampler_options=tuple(args.sampler_option),
                           filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
     config = replace(config, scenario=replace(config.scenario, objects=args.objects),
                      grasps=replace(config.grasps, rank_by=args.rank_by))
@@ -81,7 +85,7 @@ def run_command(args: argparse.Namespace) -> int:
         pssnet = Completer.from_checkpoint(args.pssnet_checkpoint, threads=args.threads)
         vae = Completer.from_checkpoint(args.vae_checkpoint, threads=args.threads) if args.vae_checkpoint else None
         strategist = Strategist(pssnet, vae, config.grasps, config.num_samples, config.physics,
-                                config.scenario.clutter_margin, config.sampler)
+                                config.scenario.clutter_margin, config.sampler, config.sampler_options)
         records = run_trials(config, strategist, args.out, progress=not args.no_progress)
     except (CheckpointError, ValueError, OSError) as error:
         print(f"pssnet grasp-trials: error: {error}", file=sys.stderr)

@@ -39,6 +39,8 @@ class TrialsConfig:
         seed: master seed of the scenes, latent noise and candidate sampling.
         num_samples: completions per view for PSSNet and the VAE (the node's default is 20).
         sampler: how PSSNet and the VAE draw them (the pipeline's ``sampler``; the node's default: checked).
+        sampler_options: ``NAME=VALUE`` settings of the checked sampler's other parameters (the pipeline's
+            ``sampler_options``; none = the node's).
         filmstrip_scenes: scenes per scenario drawn in the filmstrip (the first ones).
         grasps: grasp candidate and scoring options: the node's defaults, but 10 raw (anchor, orientation)
             pairs per kept candidate instead of 3 (the clutter filter drops most of them: in the cupboard ~95 %)
@@ -55,6 +57,7 @@ class TrialsConfig:
     seed: int = 0
     num_samples: int = 20
     sampler: str = "checked"
+    sampler_options: tuple[str, ...] = ()
     filmstrip_scenes: int = 2
     grasps: GraspConfig = field(default_factory=lambda: GraspConfig(oversample=10.0, plane_clearance=0.003))
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
@@ -67,6 +70,8 @@ class TrialsConfig:
         data.pop("trials")
         data.pop("filmstrip_scenes")
         data["scenario"].pop("cache_dir")
+        if not data["sampler_options"]:  # the node's sampler: as runs made before the option existed recorded it
+            data.pop("sampler_options")
         return json.loads(json.dumps(data, default=str))
 
 

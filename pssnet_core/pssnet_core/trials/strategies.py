@@ -80,13 +80,16 @@ class Strategist:
         grasps: grasp candidate and scoring options (the node's).
         num_samples: completions drawn per view for PSSNet and the VAE.
         sampler: how they are drawn (``PipelineConfig.sampler``).
+        sampler_options: the checked sampler's other settings (``PipelineConfig.sampler_options``).
         physics: for the pre-grasp distance the clutter filter checks.
         clutter_margin: clearance the planner keeps from the clutter (m).
     """
 
     def __init__(self, pssnet: Completer, vae: Completer | None, grasps: GraspConfig, num_samples: int,
-                 physics: PhysicsConfig, clutter_margin: float, sampler: str = "checked") -> None:
-        config = PipelineConfig(num_samples=num_samples, grasps=grasps, sampler=sampler)
+                 physics: PhysicsConfig, clutter_margin: float, sampler: str = "checked",
+                 sampler_options: tuple[str, ...] = ()) -> None:
+        config = PipelineConfig(num_samples=num_samples, grasps=grasps, sampler=sampler,
+                                sampler_options=tuple(sampler_options))
         self.pipelines = {"pssnet": CompletionPipeline(pssnet, config)}
         self.num_samples = num_samples
         self.sampler_config = config.checked_sampler_config()
