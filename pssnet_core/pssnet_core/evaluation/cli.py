@@ -67,6 +67,22 @@ def _add_plausible_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
+def _add_model_options(p: argparse.ArgumentParser, default_models: str) -> None:
+    p.add_argument("--models", default=default_models, help="method names (checkpoint order)")
+    p.add_argument("--checkpoints", required=True,
+                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+
+
+def _add_run_options(p: argparse.ArgumentParser, default_out: str, progress: bool = True) -> None:
+    """--out, --device, --threads, --seed and (unless the command's other options add it) --no-progress."""
+    p.add_argument("--out", default=default_out, help="output directory")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--seed", type=int, default=0)
+    if progress:
+        p.add_argument("--no-progress", action="store_true")
+
+
 def _add_sampler_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samplers", type=_names, default=("posterior",),
                    help="posterior sampling only, or also each model behind the plausibility-checked sampler (method "
@@ -93,19 +109,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "evaluate", help="score completion models against the plausible sets: the paper's table and figures",
         description="Writes OUT/results.md, OUT/results.csv, OUT/per_observation.csv, "
                     "OUT/coverage_vs_rotation.png and OUT/samples_<method>.png.")
-    e.add_argument("--models", default="pssnet,vae,vae_gan,recgan", help="method names (checkpoint order)")
-    e.add_argument("--checkpoints", required=True,
-                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+    _add_model_options(e, "pssnet,vae,vae_gan,recgan")
     _add_plausible_options(e)
     e.add_argument("--samples", type=int, default=100, help="completions per observation (paper: 100)")
     _add_sampler_options(e)
     e.add_argument("--delta", type=float, default=PAPER_DELTA, help="the paper's delta (m)")
     e.add_argument("--scaled-delta", type=float, default=SCALED_DELTA,
                    help="the delta scaled to real-size objects (m); <= 0 to skip")
-    e.add_argument("--out", default="results", help="output directory")
-    e.add_argument("--device", default="cpu")
-    e.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    e.add_argument("--seed", type=int, default=0)
+    _add_run_options(e, "results", progress=False)
     e.add_argument("--plot-mugs", type=int, default=3, help="mugs in the coverage-vs-rotation plot")
     e.add_argument("--model-box-temperatures", type=_floats, default=None,
                    help="one box temperature per model, comma separated (PSSNet's box sigma factor; 1 for models "
@@ -119,17 +130,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "handle, the circular spread of its azimuth, its distance from the true handle and the "
                     "mean pairwise chamfer distance between samples. Writes OUT/handles.md, OUT/handles.csv "
                     "and OUT/handle_samples_{hidden,visible}.png.")
-    h.add_argument("--models", default="pssnet,vae", help="method names (checkpoint order)")
-    h.add_argument("--checkpoints", required=True,
-                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+    _add_model_options(h, "pssnet,vae")
     h.add_argument("--data", required=True, help="the mugs test set (or a directory holding test/mugs)")
     h.add_argument("--samples", type=int, default=20, help="completions per view")
     h.add_argument("--max-mugs", type=int, default=None, help="measure only the first K measurable mugs")
-    h.add_argument("--out", default="results/handles", help="output directory")
-    h.add_argument("--device", default="cpu")
-    h.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    h.add_argument("--seed", type=int, default=0)
-    h.add_argument("--no-progress", action="store_true")
+    _add_run_options(h, "results/handles")
     h.set_defaults(func=_guard(_handles_command))
 
     a = subparsers.add_parser(
@@ -141,9 +146,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "sets do not depend on the model and are cached in OUT/plausible_cache. Writes "
                     "OUT/ambiguity.md, OUT/ambiguity.json, OUT/ambiguity_per_view.csv and OUT/handle_arcs.png, "
                     "OUT/slit_extents.png, OUT/ambiguity_summary.png.")
-    a.add_argument("--models", default="pssnet", help="method names (checkpoint order)")
-    a.add_argument("--checkpoints", required=True,
-                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+    _add_model_options(a, "pssnet")
     a.add_argument("--data", required=True, help="directory holding the test sets (mugs, ycb_narrow)")
     a.add_argument("--sets", default="mugs,ycb_narrow",
                    help="one mug set and/or one narrow-slit set (default mugs,ycb_narrow; the out-of-family ones: "
@@ -169,11 +172,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="judge against the stored depth crop instead of the re-rendered whole image")
     a.add_argument("--figure-views", type=int, default=4, help="hidden-handle views in the arc figure")
     a.add_argument("--cache-dir", default=None, help="plausible-set cache (default OUT/plausible_cache)")
-    a.add_argument("--out", default="results/ambiguity", help="output directory")
-    a.add_argument("--device", default="cpu")
-    a.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    a.add_argument("--seed", type=int, default=0)
-    a.add_argument("--no-progress", action="store_true")
+    _add_run_options(a, "results/ambiguity")
     a.set_defaults(func=_guard(_ambiguity_command))
 
     m = subparsers.add_parser(
@@ -183,9 +182,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "chamfer on the top-k) and to the view's truth. Writes OUT/memorisation.md, "
                     "OUT/memorisation.json, OUT/memorisation_per_completion.csv, OUT/memorisation_scatter.png "
                     "and OUT/memorisation_examples.png.")
-    m.add_argument("--models", default="pssnet", help="method names (checkpoint order)")
-    m.add_argument("--checkpoints", required=True,
-                   help="a directory (DIR/<model>.pt or DIR/<model>/best.pt) or a comma list, one per model")
+    _add_model_options(m, "pssnet")
     m.add_argument("--train-data", required=True,
                    help="training datasets, comma separated; each a dataset or a folder of them (data/d32/train)")
     m.add_argument("--data", required=True, help="directory holding the test sets")
@@ -198,11 +195,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--verify", type=int, default=0,
                    help="re-search this many completions by brute force over the whole training set (slow on large "
                         "sets: one distance transform per training grid, ~11 s per 1,000 grids measured here)")
-    m.add_argument("--out", default="results/memorisation", help="output directory")
-    m.add_argument("--device", default="cpu")
-    m.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    m.add_argument("--seed", type=int, default=0)
-    m.add_argument("--no-progress", action="store_true")
+    _add_run_options(m, "results/memorisation")
     m.set_defaults(func=_guard(_memorisation_command))
 
     c = subparsers.add_parser(
