@@ -24,7 +24,7 @@ import numpy as np
 
 from pssnet_core.evaluation.ambiguity_cache import AmbiguityTestSet, cached_plausible
 from pssnet_core.evaluation.ambiguity_sets import AmbiguityMeasure
-from pssnet_core.evaluation.handles import handle_geometries
+from pssnet_core.evaluation.handles import circular_difference_deg, handle_geometries
 from pssnet_core.evaluation.testsets import find_test_set
 
 
@@ -44,8 +44,8 @@ def main() -> None:
     arcs, cost = cached_plausible(mugs, visible, "handle_arcs", AmbiguityMeasure(), args.cache_dir, False)
     reach: dict[int, float] = {}  # the farthest accepted turn from the truth, degrees
     for index, arc in arcs.items():
-        turns = (arc.azimuths_deg[arc.accepted(args.delta)] + 180.0) % 360.0 - 180.0
-        reach[index] = float(np.abs(turns).max()) if len(turns) else float("nan")
+        turns = circular_difference_deg(arc.azimuths_deg[arc.accepted(args.delta)], 0.0)
+        reach[index] = float(turns.max()) if len(turns) else float("nan")
     pinned = {i for i, r in reach.items() if r <= args.pinned_deg}
     print(f"{len(visible)} visible-handle views of {args.set} ({cost['seconds_all_views']:.0f} s of arcs): "
           f"{len(pinned)} pin the handle within {args.pinned_deg:g} deg at delta {args.delta:g} m")
