@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import Pose
 from pssnet_interfaces.srv import SampleCompletions
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial import cKDTree
@@ -21,11 +22,20 @@ from test_node_helpers import (
     make_request,
     node_checkpoint,
     render_mug_scene,
+    scene_messages,
     stamped_header,
 )
 
+from pssnet_core.data.scenes import render_view
 from pssnet_core.geometry import CameraIntrinsics
-from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image, pointcloud2_to_numpy, pose_to_matrix
+from pssnet_core.shapes import make_shape
+from pssnet_ros.conversions import (
+    intrinsics_to_camera_info,
+    matrix_to_pose,
+    numpy_to_image,
+    pointcloud2_to_numpy,
+    pose_to_matrix,
+)
 from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_testing.node_under_test import NodeUnderTest
 from pssnet_testing.processes import stale_shm_files
@@ -201,6 +211,10 @@ def bad_requests(scene):
         getattr(info, field)[index] = value
         return info
 
+    plain = make_request(scene, header)
+    depth_msg, info_msg = plain.depth, plain.camera_info
+    zero_quaternion = Pose()
+    zero_quaternion.orientation.w = 0.0
     quarter_mm = numpy_to_image(np.rint(scene.depth * 4000.0).astype(np.uint16), "16UC1", header)
     return [
         ("unknown depth encoding", request(depth__encoding="rgb8"),
@@ -245,6 +259,14 @@ def bad_requests(scene):
          r"too large for this model, or the depth units \(depth_scale of 16-bit images\) or the intrinsics are wrong$"),
         ("absurd num_samples", request(num_samples=4_000_000_000),
          r"^num_samples 4000000000 is out of range: ask for 1..100 \(max_num_samples\), or 0 for the node's"),
+        ("more views of unequal length", request(more_depths=[make_request(scene, header).depth]),
+         r"^more_depths, more_masks, more_camera_infos and more_camera_poses must be the same length, got 1, 0, 0, 0$"),
+        ("an empty second mask", request(more_depths=[depth_msg], more_masks=[numpy_to_image(np.zeros_like(scene.mask),
+                                                                                                "mono8", header)],
+                                         more_camera_infos=[info_msg], more_camera_poses=[Pose()]),
+         r"^view 2: mask is empty: 0 pixels marked, need at least 50 \(min_mask_pixels\)$"),
+        ("a zero quaternion as a candidate view", request(candidate_views=[Pose(), zero_quaternion]),
+         r"^candidate view 1: pose orientation is not a valid quaternion: \[0.0, 0.0, 0.0, 0.0\]$"),
         ("unsynchronised stamps", request(mask__header=stamped_header(51)),
          r"^unsynchronised request: depth stamp 50.000000 s and mask stamp 51.000000 s differ by 1.000000 s "
          r"\(sync_tolerance 0.01 s\)$"),
@@ -261,6 +283,37 @@ def test_every_bad_input_gets_an_exact_answer_and_the_node_keeps_serving(ros, se
     assert node.running()
     assert call(ros, service, make_request(scene, stamped_header(60), num_samples=1)).success
     assert ros.stats()["service_failures"] >= len(cases)
+
+
+def test_a_second_look_adds_what_it_saw_and_candidate_views_are_scored(ros, service, scene, checkpoint):
+    """The mug seen again from behind (its handle in view), and two places asked about: behind and the first
+    camera's own. All poses are optical frames in the first depth image's frame."""
+    back = render_view(make_shape("mug", 2_000_003), yaw_deg=0.0, distance=0.6, tilt_deg=30.0, azimuth_deg=0.0)
+    first_from_back = np.linalg.inv(scene.camera_pose) @ back.camera_pose
+    header = stamped_header(90)
+    one = call(ros, service, make_request(scene, header, num_samples=4))
+    request = make_request(scene, header, num_samples=4)
+    depth, mask, info = scene_messages(back, stamped_header(91))
+    request.more_depths, request.more_masks, request.more_camera_infos = [depth], [mask], [info]
+    request.more_camera_poses = [matrix_to_pose(first_from_back)]
+    request.candidate_views = [matrix_to_pose(first_from_back), matrix_to_pose(np.eye(4))]
+    two = call(ros, service, request)
+    assert one.success and two.success, (one.message, two.message)
+    assert len(one.candidate_view_scores) == 0 and len(two.candidate_view_scores) == 2
+    known_one, _ = pointcloud2_to_numpy(one.known_occupied)
+    known_two, _ = pointcloud2_to_numpy(two.known_occupied)
+    assert len(known_two) > 1.3 * len(known_one)  # the back of the mug and its handle
+    # The points the back camera saw, in the first camera's frame, are in the known-occupied cloud.
+    v, u = np.nonzero((back.mask > 0) & (back.depth > 0.1))
+    seen = back.intrinsics.backproject(u, v, back.depth[v, u]) @ first_from_back[:3, :3].T + first_from_back[:3, 3]
+    distance, _ = cKDTree(known_two).query(seen)
+    assert np.quantile(distance, 0.99) <= 0.5 * np.sqrt(3) * two.voxel_size + 1e-4
+    assert all(0.0 <= s <= 1.0 for s in two.candidate_view_scores)
+    if checkpoint[1]:  # a trained model's samples differ where the first view did not look, not where it did
+        asked = make_request(scene, header, num_samples=8)
+        asked.candidate_views = list(request.candidate_views)
+        behind, itself = call(ros, service, asked).candidate_view_scores
+        assert itself <= 0.1 < behind
 
 
 def test_empty_depth_without_topic_input_is_explained(ros, service):

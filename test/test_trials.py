@@ -42,6 +42,8 @@ from pssnet_core.trials.plausible import (
 )
 from pssnet_core.trials.run import TrialRecord, TrialsConfig, paired_lines, run_trials, wilson_interval
 from pssnet_core.trials.scenarios import (
+    LOOK_AZIMUTHS_DEG,
+    LOOK_ELEVATIONS_DEG,
     ScenarioConfig,
     ScenarioError,
     SceneFactory,
@@ -49,8 +51,10 @@ from pssnet_core.trials.scenarios import (
     clear_of_clutter,
     held_out_boxes,
     held_out_mugs,
+    look_cameras,
+    render_look,
 )
-from pssnet_core.trials.strategies import Strategist
+from pssnet_core.trials.strategies import LOOK_MIN_SEPARABILITY, Strategist
 
 GRIPPER = GripperConfig()
 
@@ -370,3 +374,25 @@ def test_the_scene_posterior_keeps_the_turns_the_scenario_could_have_drawn():
                                                                       True]
     assert within_yaw_range(180.0, turns, (100.0, 260.0)).tolist() == [True, True, False, False, False, False,
                                                                         False, True]
+
+
+def test_a_second_look_comes_from_where_the_samples_disagree_and_sees_the_box(factory, strategist):
+    scene = factory.scene("box_slit", 0)
+    cameras = look_cameras(scene)
+    assert len(cameras) == len(LOOK_AZIMUTHS_DEG) * len(LOOK_ELEVATIONS_DEG)  # the first camera is level: none dropped
+    distances = [np.linalg.norm(c.pose[:3, 3] - scene.view.camera_pose[:3, 3]) for c in cameras]
+    assert min(distances) > 0.05
+    behind_the_wall = next(c for c in cameras if c.azimuth_deg == 0.0 and c.elevation_deg == 15.0)
+    view = render_look(scene, behind_the_wall.pose)
+    assert view is None or view.mask.sum() == 0  # the wall hides the box from there
+    choice = strategist.choose(scene, ("pssnet_second_look",), seed=0)["pssnet_second_look"]
+    notes = choice.notes
+    assert notes["look_separability"] >= LOOK_MIN_SEPARABILITY  # looked, and why
+    assert (notes["look_azimuth_deg"], notes["look_elevation_deg"]) != (0.0, 15.0)
+    assert choice.pose is not None and choice.score >= 0.9  # both views' samples agree on this grasp
+    # 4 samples of scene 1 differ less: from nowhere would a look tell two apart as likely as not. PSSNet's grasp.
+    unsure = factory.scene("box_slit", 1)
+    kept = strategist.choose(unsure, ("pssnet", "pssnet_second_look"), seed=0)
+    assert "look_azimuth_deg" not in kept["pssnet_second_look"].notes
+    assert 0.0 < kept["pssnet_second_look"].notes["look_separability"] < LOOK_MIN_SEPARABILITY
+    assert np.array_equal(kept["pssnet_second_look"].pose, kept["pssnet"].pose)

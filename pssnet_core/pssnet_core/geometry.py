@@ -515,21 +515,45 @@ def check_object_scale(points: np.ndarray, pose: GridPose, config: GridConfig, m
                                f"{hint}")
 
 
+@dataclass(frozen=True)
+class ViewEvidence:
+    """What one camera of a fused observation saw, in the observation grid.
+
+    Attributes:
+        known_occupied: (N, N, N) bool, voxels holding this view's surface points.
+        known_free: (N, N, N) bool, voxels this view saw through.
+        camera: (3,) this camera's centre in the first camera's frame (metres).
+    """
+
+    known_occupied: np.ndarray = field(repr=False)
+    known_free: np.ndarray = field(repr=False)
+    camera: np.ndarray
+
+
 @dataclass
 class Observation:
-    """What the network sees of one view, and where it lies in the camera frame.
+    """What the network sees of one view (or of several fused), and where it lies in the first camera's frame.
 
     Attributes:
         known_occupied: (N, N, N) bool, voxels holding observed surface points.
         known_free: (N, N, N) bool, voxels seen through (between the camera and a valid reading).
-        pose: where the grid lies in the camera frame.
-        points: (M, 3) observed object points in the camera frame.
+        pose: where the grid lies in the (first) camera frame.
+        points: (M, 3) observed object points in the (first) camera frame.
+        views: for an observation fused from several views (:func:`fuse_view`), each view's own evidence, the
+            first view's first; empty for one view (then the grids above are that view's, camera at the origin).
     """
 
     known_occupied: np.ndarray
     known_free: np.ndarray
     pose: GridPose
     points: np.ndarray = field(repr=False)
+    views: tuple[ViewEvidence, ...] = ()
+
+    def evidence(self) -> tuple[ViewEvidence, ...]:
+        """Each view's own evidence (one entry, camera at the origin, for a single view)."""
+        if self.views:
+            return self.views
+        return (ViewEvidence(self.known_occupied, self.known_free, np.zeros(3)),)
 
     def network_input(self) -> np.ndarray:
         """(2, N, N, N) float32: channel 0 known occupied, channel 1 known free."""
@@ -615,3 +639,65 @@ def observe(depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics, u
     known_free = carve_free_space(depth, usable, intrinsics, pose)
     known_free &= ~known_occupied  # a voxel holding observed surface is never free
     return Observation(known_occupied=known_occupied, known_free=known_free, pose=pose, points=points)
+
+
+def checked_rigid(transform: np.ndarray, name: str) -> np.ndarray:
+    """``transform`` as a (4, 4) float64 array, checked to be a rigid transform (rotation and translation).
+
+    Raises:
+        ObservationError: naming ``name``, when it is not a finite 4x4 matrix or its rotation part is not a rotation.
+    """
+    matrix = np.asarray(transform, dtype=np.float64)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ObservationError(f"{name} must be a finite 4x4 transform, got shape {matrix.shape}")
+    rotation = matrix[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) < 0:
+        raise ObservationError(f"{name}'s rotation is not a rotation (orthonormal, determinant +1)")
+    return matrix
+
+
+def rigid_inverse(transform: np.ndarray, name: str) -> np.ndarray:
+    """The inverse of a rigid (4, 4) transform (:func:`checked_rigid` first)."""
+    matrix = checked_rigid(transform, name)
+    inverse = np.eye(4)
+    inverse[:3, :3] = matrix[:3, :3].T
+    inverse[:3, 3] = -matrix[:3, :3].T @ matrix[:3, 3]
+    return inverse
+
+
+def fuse_view(observation: Observation, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
+              first_from_camera: np.ndarray, min_depth: float = 0.1, max_depth: float = 5.0,
+              min_points: int = 10) -> Observation:
+    """Adds a second look at the same object to an observation: the union of what both saw, in the first grid.
+
+    The grid keeps the first view's placement (the network was trained on grids placed so); the new view's
+    surface points inside it become known occupied, the voxels it saw through known free (never where either
+    view saw surface), and its evidence is kept apart (:attr:`Observation.views`) so that a check of a shape
+    against the observation follows each camera's own rays.
+
+    Args:
+        observation: the observation so far (one view or already fused).
+        depth, mask, intrinsics: the new view, as for :func:`observe`.
+        first_from_camera: (4, 4) the new camera's pose in the first camera's frame (first <- new).
+        min_depth, max_depth, min_points: as for :func:`observe`.
+
+    Raises:
+        ObservationError: the new view has too few masked readings, or ``first_from_camera`` is not a rigid
+            transform.
+    """
+    transform = checked_rigid(first_from_camera, "first_from_camera")
+    rotation, translation = transform[:3, :3], transform[:3, 3]
+    points = masked_points(depth, mask, intrinsics, min_depth, max_depth, min_points)
+    pose = observation.pose
+    # The grid as the new camera sees it: the same voxels, expressed in the new camera's frame.
+    pose_here = GridPose(rotation=rotation.T @ pose.rotation, origin=rotation.T @ (pose.origin - translation),
+                         voxel_size=pose.voxel_size, size=pose.size)
+    ijk, inside = pose_here.voxel_indices(points)
+    occupied = np.zeros((pose.size,) * 3, dtype=bool)
+    occupied[tuple(ijk[inside].T)] = True
+    free = carve_free_space(depth, valid_depth(depth, min_depth, max_depth), intrinsics, pose_here)
+    known_occupied = observation.known_occupied | occupied
+    new = ViewEvidence(occupied, free & ~occupied, translation.copy())
+    return Observation(known_occupied=known_occupied, known_free=(observation.known_free | free) & ~known_occupied,
+                       pose=pose, points=np.concatenate([observation.points, points @ rotation.T + translation]),
+                       views=(*observation.evidence(), new))

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -30,10 +30,13 @@ from pssnet_core.geometry import (
     ObservationError,
     check_intrinsics,
     check_object_scale,
+    fuse_view,
     observe,
+    rigid_inverse,
     valid_depth,
 )
 from pssnet_core.grasps import GraspConfig, GraspError, GraspSet, plan_grasps
+from pssnet_core.next_view import NextViewConfig, rank_views
 
 if TYPE_CHECKING:  # torch is imported only when a model is loaded: `completion_node --help` stays fast
     from pssnet_core.inference import Completer
@@ -67,6 +70,22 @@ class ModelOutputError(ValueError):
 
 class RunCancelled(RuntimeError):
     """:meth:`CompletionPipeline.run` stopped early because its ``should_stop`` said so."""
+
+
+@dataclass(frozen=True)
+class MoreView:
+    """A further look at the same object (a second camera, or the same camera moved), fused into the first view's
+    observation by :meth:`CompletionPipeline.run`.
+
+    Attributes:
+        depth, mask, intrinsics: the view, as for :meth:`CompletionPipeline.run`.
+        first_from_camera: (4, 4) this camera's pose in the first camera's optical frame (first <- this).
+    """
+
+    depth: np.ndarray
+    mask: np.ndarray
+    intrinsics: CameraIntrinsics
+    first_from_camera: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -204,6 +223,8 @@ class PipelineResult:
             the support plane disagrees with ``up_vector``.
         up_disagreement_deg: angle between ``up_vector`` and the support plane's normal around the object (NaN
             when not checked: ``estimate_up`` on, the check off, or no plane in view).
+        view_scores: per candidate view asked about, the probability that its depth image tells two samples apart
+            (:func:`pssnet_core.next_view.rank_views`); empty when none was asked about.
     """
 
     observation: Observation
@@ -218,6 +239,7 @@ class PipelineResult:
     weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     note: str = ""
     up_disagreement_deg: float = math.nan
+    view_scores: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
 
     @property
     def num_samples(self) -> int:
@@ -381,8 +403,9 @@ class CompletionPipeline:
 
     def run(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
             num_samples: int | None = None, compute_grasps: bool = True,
-            should_stop: Callable[[str], bool] | None = None) -> PipelineResult:
-        """Completes one view.
+            should_stop: Callable[[str], bool] | None = None,
+            more_views: Sequence[MoreView] = (), candidate_views: Sequence[np.ndarray] = ()) -> PipelineResult:
+        """Completes one view (or several of the same object, fused into the first one's grid).
 
         Args:
             depth: (H, W) float depth in metres (0/NaN/Inf = no reading).
@@ -393,6 +416,12 @@ class CompletionPipeline:
             should_stop: asked before each later step with its name (``STEP_NETWORK``, ``STEP_GRASPS``); True
                 ends the run with :class:`RunCancelled` (a node leaving the active state, or a client cancelling
                 its goal, stops the call so); a caller may also report the step as progress.
+            more_views: further looks at the same object (:func:`pssnet_core.geometry.fuse_view`): what they see
+                is added to the observation, and the checked sampler checks every proposal against each view.
+            candidate_views: places the camera (same intrinsics) could look from next, each (4, 4) its pose in the
+                first camera's frame (first <- candidate): each is scored in ``view_scores`` by how well its depth
+                image would tell the samples apart (:mod:`pssnet_core.next_view`; nothing in front of the object
+                is known here, so a candidate behind an obstacle scores as if it were not).
 
         Raises:
             RunCancelled: ``should_stop`` returned True.
@@ -414,6 +443,21 @@ class CompletionPipeline:
             check_object_scale(observation.points, observation.pose, grid, config.min_object_voxels)
         except ObservationError as error:
             raise PipelineInputError(str(error)) from error
+        for number, view in enumerate(more_views, start=2):
+            try:
+                view_depth = np.asarray(view.depth)
+                if not np.issubdtype(view_depth.dtype, np.floating):
+                    raise PipelineInputError(f"depth must be float metres, got dtype {view_depth.dtype}")
+                self.check_input(view_depth, np.asarray(view.mask), view.intrinsics, n, config)
+                observation = fuse_view(observation, view_depth, np.asarray(view.mask), view.intrinsics,
+                                        view.first_from_camera, config.min_depth, config.max_depth,
+                                        config.min_valid_points)
+            except (PipelineInputError, ObservationError) as error:
+                raise PipelineInputError(f"view {number}: {error}") from error
+        try:
+            candidates_from_first = [rigid_inverse(c, f"candidate view {k}") for k, c in enumerate(candidate_views)]
+        except ObservationError as error:
+            raise PipelineInputError(str(error)) from error
         self._stop_if(should_stop, STEP_NETWORK)
         t1 = time.perf_counter()
         from pssnet_core.inference import CompletionInputError
@@ -433,6 +477,10 @@ class CompletionPipeline:
         weights = getattr(completion, "weights", None)  # the checked sampler's; the posterior's weigh alike
         if weights is None:
             weights = np.full(n, 1.0 / n, np.float32)
+        view_scores = np.zeros(0, np.float32)
+        if candidates_from_first:
+            view_scores = rank_views(completion.occupancy, weights, observation.pose, candidates_from_first, intrinsics,
+                                     config=NextViewConfig(delta=config.check_delta)).astype(np.float32)
         t2 = time.perf_counter()
         pose = observation.pose
         completions = pose.occupied_centres_per_grid(completion.occupancy)
@@ -452,7 +500,8 @@ class CompletionPipeline:
         return PipelineResult(observation=observation, voxel_size=grid.voxel_size, known_occupied=known,
                               completions=completions, occupancy=completion.occupancy, grasps=grasps, up=up,
                               seed=seed, timings=timings, weights=np.asarray(weights, np.float32),
-                              note=self._note(completion, up_disagreement, config), up_disagreement_deg=up_disagreement)
+                              note=self._note(completion, up_disagreement, config), up_disagreement_deg=up_disagreement,
+                              view_scores=view_scores)
 
     @staticmethod
     def _stop_if(should_stop: Callable[[str], bool] | None, step: str) -> None:

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pssnet_core.geometry import GridPose
+from pssnet_core.geometry import GridPose, ViewEvidence
 from pssnet_core.inference import CompletionInputError, CompletionResult
 from pssnet_core.spread import BitRows, farthest_point_selection
 
@@ -183,9 +183,21 @@ class GridCheck:
     deep_free: np.ndarray
 
     @classmethod
-    def prepare(cls, known_occupied: np.ndarray, known_free: np.ndarray, pose: GridPose, delta: float) -> GridCheck:
+    def prepare(cls, known_occupied: np.ndarray, known_free: np.ndarray, pose: GridPose, delta: float,
+                views: tuple[ViewEvidence, ...] = ()) -> GridCheck:
+        """The check of one view (camera at the origin of ``pose``'s frame), or of each of ``views`` (a fused
+        observation's, :attr:`Observation.views`): every observed voxel along its own camera's ray, and a
+        proposal in front of any camera's readings by more than delta is in deep-free space."""
+        if not views:
+            views = (ViewEvidence(known_occupied, known_free, np.zeros(3)),)
+        parts = [cls._prepare_view(v, known_free, pose, delta) for v in views]
+        return cls(observed_rays=np.concatenate([p.observed_rays for p in parts]),
+                   deep_free=np.logical_or.reduce([p.deep_free for p in parts]))
+
+    @classmethod
+    def _prepare_view(cls, view: ViewEvidence, all_free: np.ndarray, pose: GridPose, delta: float) -> GridCheck:
         n = pose.size
-        camera = pose.camera_to_grid(np.zeros((1, 3)))[0]  # the camera in grid coordinates (voxel units)
+        camera = pose.camera_to_grid(np.asarray(view.camera, np.float64)[None])[0]  # in grid coordinates (voxels)
         reach = delta / pose.voxel_size  # voxels
         steps = np.linspace(0.0, reach, max(2, int(math.ceil(reach * 2)) + 1))  # half-voxel spacing
 
@@ -199,10 +211,11 @@ class GridCheck:
             flat = np.ravel_multi_index(tuple(np.clip(index, 0, n - 1).transpose(2, 0, 1)), (n, n, n))
             return np.where(inside, flat, -1)
 
-        observed = along_rays(np.argwhere(known_occupied).astype(np.float64), steps)
-        free_ijk = np.argwhere(known_free)
+        observed = along_rays(np.argwhere(view.known_occupied).astype(np.float64), steps).reshape(-1, len(steps))
+        free_ijk = np.argwhere(view.known_free)
         behind = along_rays(free_ijk.astype(np.float64), np.array([reach]))[:, 0]
-        free_flat = known_free.reshape(-1)
+        # Seen free delta further along this camera's ray by any view: a proposal here lies in front of a reading.
+        free_flat = all_free.reshape(-1)
         deep = np.zeros(n ** 3, dtype=bool)
         deep[np.ravel_multi_index(tuple(free_ijk.T), (n, n, n))] = (behind < 0) | free_flat[np.maximum(behind, 0)]
         return cls(observed_rays=observed, deep_free=deep)
@@ -374,7 +387,8 @@ class CheckedSampler:
         # on a GPU); the chosen samples' probabilities follow at the end.
         occupancy = (probs > 0.5).cpu().numpy()
         t1 = time.perf_counter()
-        check = GridCheck.prepare(known_occupied, known_free, pose, self.sampler_config.delta)
+        check = GridCheck.prepare(known_occupied, known_free, pose, self.sampler_config.delta,
+                                  getattr(observation, "views", ()))
         packed = BitRows.pack(occupancy)
         missed, free = check.violations(occupancy, packed)
         source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])

@@ -6,7 +6,7 @@ computed offline from a bag is, field for field, what the node would have publis
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,7 +19,7 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from pssnet_core.grasps import GripperConfig, gripper_segments
-from pssnet_core.pipeline import CompletionPipeline, PipelineResult
+from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineResult
 from pssnet_ros import conversions
 from pssnet_ros.params import pipeline_config
 
@@ -91,10 +91,37 @@ def load_pipeline(values: dict[str, Any]) -> CompletionPipeline:
     return pipeline
 
 
+@dataclass(frozen=True)
+class MoreViewMessages:
+    """A further look at the object, as a request carries it: images, camera_info and the camera's optical frame as
+    a pose in the first depth image's frame."""
+
+    depth: Image
+    mask: Image
+    camera_info: CameraInfo
+    camera_pose: Pose
+
+
+def more_views_of(request: Any) -> list[MoreViewMessages]:
+    """The further looks of a ``SampleCompletions`` request or goal.
+
+    Raises:
+        ValueError: its four ``more_*`` arrays differ in length.
+    """
+    arrays = (request.more_depths, request.more_masks, request.more_camera_infos, request.more_camera_poses)
+    if len({len(a) for a in arrays}) != 1:
+        raise ValueError(f"more_depths, more_masks, more_camera_infos and more_camera_poses must be the same length, "
+                         f"got {', '.join(str(len(a)) for a in arrays)}")
+    return [MoreViewMessages(*parts) for parts in zip(*arrays, strict=True)]
+
+
 def complete_messages(pipeline: CompletionPipeline, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo,
                       depth_scale: float, num_samples: int, compute_grasps: bool,
-                      should_stop: Callable[[str], bool] | None = None) -> tuple[PipelineResult, Header]:
-    """Converts one depth/mask/camera_info set and completes it; returns the result and the header outputs carry.
+                      should_stop: Callable[[str], bool] | None = None,
+                      more_views: Sequence[MoreViewMessages] = (),
+                      candidate_views: Sequence[Pose] = ()) -> tuple[PipelineResult, Header]:
+    """Converts one depth/mask/camera_info set (and any further looks, and the candidate views to score) and
+    completes it; returns the result and the header outputs carry.
 
     Raises:
         ValueError: a message cannot be converted or the pipeline refuses the input (the message says why).
@@ -103,7 +130,24 @@ def complete_messages(pipeline: CompletionPipeline, depth_msg: Image, mask_msg: 
     depth = conversions.depth_to_metres(depth_msg, depth_scale)
     mask = conversions.mask_to_numpy(mask_msg)
     intrinsics = conversions.camera_info_to_intrinsics(info_msg)
-    return pipeline.run(depth, mask, intrinsics, num_samples, compute_grasps, should_stop), depth_msg.header
+    more = []
+    for number, view in enumerate(more_views, start=2):
+        try:
+            more.append(MoreView(conversions.depth_to_metres(view.depth, depth_scale),
+                                 conversions.mask_to_numpy(view.mask),
+                                 conversions.camera_info_to_intrinsics(view.camera_info),
+                                 conversions.pose_to_matrix(view.camera_pose)))
+        except ValueError as error:
+            raise ValueError(f"view {number}: {error}") from error
+    candidates = []
+    for number, pose in enumerate(candidate_views):
+        try:
+            candidates.append(conversions.pose_to_matrix(pose))
+        except ValueError as error:
+            raise ValueError(f"candidate view {number}: {error}") from error
+    result = pipeline.run(depth, mask, intrinsics, num_samples, compute_grasps, should_stop, more_views=more,
+                          candidate_views=candidates)
+    return result, depth_msg.header
 
 
 def grasp_fields(result: PipelineResult) -> tuple[list[Pose], list[float], list[float]]:
@@ -164,6 +208,7 @@ def fill_response(response: SampleCompletions.Response, result: PipelineResult,
     poses, scores, widths = grasp_fields(result)
     response.grasps = PoseArray(header=header, poses=poses)
     response.grasp_scores, response.grasp_widths = scores, widths
+    response.candidate_view_scores = [float(s) for s in result.view_scores]
     response.success = True
     return response
 

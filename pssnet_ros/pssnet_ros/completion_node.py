@@ -45,7 +45,7 @@ from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray
+from geometry_msgs.msg import Pose, PoseArray
 from pssnet_interfaces.action import SampleCompletions as SampleCompletionsAction
 from pssnet_interfaces.msg import GraspCandidates
 from pssnet_interfaces.srv import SampleCompletions
@@ -74,9 +74,11 @@ from pssnet_ros.completion_io import (
     OUTPUT_TOPICS,
     STREAMS,
     SYNC_QUEUE_SIZE,
+    MoreViewMessages,
     complete_messages,
     fill_response,
     load_pipeline,
+    more_views_of,
     output_messages,
     stamp_ns,
 )
@@ -496,9 +498,11 @@ class CompletionNode(LifecycleNode):
 
     # ----------------------------------------------------------------------------------------- service
     def _run(self, depth_msg: Image, mask_msg: Image, info_msg: CameraInfo, num_samples: int,
-             compute_grasps: bool, should_stop: Callable[[str], bool] | None = None) -> tuple[PipelineResult, Header]:
-        """Completes one set; stops at the pipeline's next step when the node leaves the active state or
-        ``should_stop`` (told the step) says so."""
+             compute_grasps: bool, should_stop: Callable[[str], bool] | None = None,
+             more_views: Sequence[MoreViewMessages] = (),
+             candidate_views: Sequence[Pose] = ()) -> tuple[PipelineResult, Header]:
+        """Completes one set (with any further looks at the object, scoring any candidate views); stops at the
+        pipeline's next step when the node leaves the active state or ``should_stop`` (told the step) says so."""
         pipeline = self.pipeline
         if pipeline is None:
             raise InputError("the node is not configured (no model loaded)", Status.STATUS_NOT_ACTIVE)
@@ -507,7 +511,7 @@ class CompletionNode(LifecycleNode):
             return self._stopping.is_set() or bool(should_stop and should_stop(step))
 
         result, header = complete_messages(pipeline, depth_msg, mask_msg, info_msg, self._values["depth_scale"],
-                                           num_samples, compute_grasps, stop)
+                                           num_samples, compute_grasps, stop, more_views, candidate_views)
         self._up_disagreement_deg = result.up_disagreement_deg
         if warning := self.up_warning():
             self.get_logger().warning(f"up_vector looks wrong: {warning}", throttle_duration_sec=WARN_THROTTLE_S)
@@ -628,7 +632,8 @@ class CompletionNode(LifecycleNode):
             depth_msg, mask_msg, info_msg = self._request_input(request)
             response.header = depth_msg.header
             result, header = self._run(depth_msg, mask_msg, info_msg, int(request.num_samples),
-                                       bool(request.compute_grasps), should_stop)
+                                       bool(request.compute_grasps), should_stop, more_views_of(request),
+                                       list(request.candidate_views))
         except RunCancelled:
             return self._refuse(response, failures, Status.STATUS_CANCELLED, CANCELLED_MESSAGE)
         except ValueError as error:

@@ -338,7 +338,7 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
                     outcome = _attempt(scene.physics, choice, config, renderer)
                     record = TrialRecord(scenario, index, name, outcome.outcome, choice.score, choice.kind,
                                          choice.width, choice.candidates, outcome.lift, outcome.followed,
-                                         outcome.contact, scene.notes)
+                                         outcome.contact, {**scene.notes, **choice.notes})
                     if film:
                         films[-1].trials.append((record, outcome.frames))
                     if (scenario, index, name) not in done:

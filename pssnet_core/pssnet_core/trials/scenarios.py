@@ -39,7 +39,14 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import ConvexHull
 
-from pssnet_core.data.scenes import ObjectScene, RenderedView, object_pose, orbit_camera, posed_box_corners
+from pssnet_core.data.scenes import (
+    ObjectScene,
+    RenderedView,
+    SceneError,
+    object_pose,
+    orbit_camera,
+    posed_box_corners,
+)
 from pssnet_core.geometry import CameraIntrinsics, GridPose
 from pssnet_core.grasps import GraspCandidates, GripperConfig
 from pssnet_core.shapes import Shape, make_shape, split_seeds
@@ -184,9 +191,10 @@ def held_out_boxes(gripper: GripperConfig, objects: str = "procedural") -> Itera
             yield shape
 
 
-def _clutter_depth(boxes: tuple[ClutterBox, ...], camera_pose: np.ndarray, intrinsics: CameraIntrinsics
-                   ) -> np.ndarray:
-    """(H, W) depth along the optical axis of the nearest clutter box (inf where none)."""
+def clutter_depth(boxes: tuple[ClutterBox, ...], camera_pose: np.ndarray, intrinsics: CameraIntrinsics
+                  ) -> np.ndarray:
+    """(H, W) depth along the optical axis of the nearest clutter box (inf where none): also what a robot that
+    knows its surroundings expects in front of the object from a camera it could move to."""
     h, w = intrinsics.height, intrinsics.width
     if not boxes:
         return np.full((h, w), np.inf)
@@ -204,7 +212,7 @@ def _clutter_depth(boxes: tuple[ClutterBox, ...], camera_pose: np.ndarray, intri
 
 def composite(view: RenderedView, boxes: tuple[ClutterBox, ...]) -> tuple[RenderedView, float]:
     """The view with the clutter in front of whatever it hides, and the fraction of object pixels hidden."""
-    clutter = _clutter_depth(boxes, view.camera_pose, view.intrinsics)
+    clutter = clutter_depth(boxes, view.camera_pose, view.intrinsics)
     seen = np.where(view.depth > 0, view.depth, np.inf)
     nearer = clutter < seen
     depth = np.where(nearer, np.round(clutter * 1000.0) / 1000.0, view.depth).astype(np.float32)
@@ -360,6 +368,52 @@ class SceneFactory:
         target = np.array([0.0, 0.0, height / 2]) + rng.uniform(-0.01, 0.01, size=3)
         camera = orbit_camera(target, float(rng.uniform(0.5, 0.8)), float(rng.uniform(25.0, 45.0)))
         return shape, pose, camera, (), ((0.0, 0.0, 0.15),), {"yaw_deg": round(yaw, 2)}, yaw_range if mug else None
+
+
+#: where a second look may come from (:func:`look_cameras`): azimuths about the object (degrees; 180 is the first
+#: camera's side, the robot's arm reaches round to the far side) and elevations
+LOOK_AZIMUTHS_DEG = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)
+LOOK_ELEVATIONS_DEG = (15.0, 45.0)
+
+
+@dataclass(frozen=True)
+class LookCamera:
+    """A place to look from: ``pose`` world <- camera, at ``azimuth_deg`` and ``elevation_deg`` about the object."""
+
+    azimuth_deg: float
+    elevation_deg: float
+    pose: np.ndarray = field(repr=False)
+
+
+def look_cameras(scene: TrialScene) -> list[LookCamera]:
+    """Where a robot could take a second look from: a ring about the centre of what the first camera saw of the
+    object, at that camera's distance, at every :data:`LOOK_AZIMUTHS_DEG` and :data:`LOOK_ELEVATIONS_DEG` (the
+    first camera's own place left out). Some look through clutter; the choice of where to look
+    (:mod:`pssnet_core.next_view`) knows the clutter and sees that."""
+    view = scene.view
+    seen = view.mask != 0
+    v, u = np.nonzero(seen)
+    points = view.intrinsics.backproject(u, v, view.depth[seen])
+    target = points.mean(axis=0) @ view.camera_pose[:3, :3].T + view.camera_pose[:3, 3]
+    distance = float(np.linalg.norm(view.camera_pose[:3, 3] - target))
+    first = view.camera_pose[:3, 3]
+    cameras = []
+    for elevation in LOOK_ELEVATIONS_DEG:
+        for azimuth in LOOK_AZIMUTHS_DEG:
+            pose = orbit_camera(target, distance, elevation, azimuth)
+            if np.linalg.norm(pose[:3, 3] - first) > 0.05:
+                cameras.append(LookCamera(azimuth, elevation, pose))
+    return cameras
+
+
+def render_look(scene: TrialScene, camera_pose: np.ndarray) -> RenderedView | None:
+    """What a camera at ``camera_pose`` sees of the scene (the clutter in front of what it hides), or None when
+    the object is not in its image."""
+    try:
+        view = scene.object_scene.render(scene.physics.object_pose, camera_pose, scene.view.intrinsics)
+    except SceneError:
+        return None
+    return composite(view, scene.physics.clutter)[0]
 
 
 def clear_of_clutter(poses: np.ndarray, widths: np.ndarray, clutter: tuple[ClutterBox, ...],

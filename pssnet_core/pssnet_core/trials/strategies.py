@@ -11,6 +11,13 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
   holds for (the product);
 - ``pssnet_confident``: the same grasps, chosen risk-averse (:meth:`GraspSet.confident_choice`: the firmest
   grip among those holding for >= 90 % of the samples' weight, else no grasp);
+- ``pssnet_second_look``: the robot looks again before it grasps when a place round the object
+  (:func:`~pssnet_core.trials.scenarios.look_cameras`) would tell two of its samples apart with probability >=
+  :data:`LOOK_MIN_SEPARABILITY` (:mod:`pssnet_core.next_view`, the known clutter in front): from the place that
+  tells them apart best, it completes both views fused (``CompletionPipeline.run(more_views=...)``) and takes the
+  best-ranked grasp on those samples; else PSSNet's grasp. The only strategy that sees more than one view. (Looking
+  only when no grasp held for >= 90 % of the samples was tried first: the samples' agreement on a grasp proved a
+  poor sign of a safe one, ``results/second_look/``);
 - ``vae``: the VAE's samples, scored the same way;
 - ``one_completion``: PSSNet's posterior mean alone (``decode(mu) > 0.5``), one shape;
 - ``observed``: the observed voxels alone (the known-occupied grid);
@@ -28,18 +35,22 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
 from pssnet_core.grasps import GraspConfig, GraspSet, plan_grasps
 from pssnet_core.inference import Completer
-from pssnet_core.pipeline import CompletionPipeline, PipelineConfig, PipelineResult
+from pssnet_core.next_view import NextViewConfig, rank_views, scaled_intrinsics
+from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineConfig, PipelineInputError, PipelineResult
 from pssnet_core.trials import STRATEGIES
 from pssnet_core.trials.physics import PhysicsConfig
 from pssnet_core.trials.plausible import PlausibleVariantsConfig, VariantJudge, plausible_shapes, posterior_shapes
-from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter
+from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter, clutter_depth, look_cameras, render_look
+
+#: ``pssnet_second_look`` looks again when some place tells two of its samples apart at least this likely
+LOOK_MIN_SEPARABILITY = 0.5
 
 
 @dataclass
@@ -53,6 +64,7 @@ class Choice:
         score: fraction of the strategy's shapes the grasp holds for (0 without a grasp).
         kind: "top" or "side" ("" without a grasp).
         candidates: candidates the strategy ranked (after the clutter filter).
+        notes: what else the strategy did, for the records (where a second look came from).
     """
 
     strategy: str
@@ -61,6 +73,7 @@ class Choice:
     score: float = 0.0
     kind: str = ""
     candidates: int = 0
+    notes: dict[str, float | str] = field(default_factory=dict)
 
 
 def posterior_mean(completer: Completer, result: PipelineResult) -> np.ndarray:
@@ -100,11 +113,12 @@ class Strategist:
         self.physics = physics
         self.clutter_margin = clutter_margin
 
-    def _complete(self, name: str, scene: TrialScene, seed: int) -> PipelineResult:
+    def _complete(self, name: str, scene: TrialScene, seed: int, more_views: tuple[MoreView, ...] = ()
+                  ) -> PipelineResult:
         pipeline = self.pipelines[name]
         pipeline.config = pipeline.with_config(up_vector=tuple(float(u) for u in scene.view.up), seed=seed)
         view = scene.view
-        return pipeline.run(view.depth, view.mask, view.intrinsics, compute_grasps=False)
+        return pipeline.run(view.depth, view.mask, view.intrinsics, compute_grasps=False, more_views=more_views)
 
     def _plan(self, occupancy: np.ndarray, result: PipelineResult, scene: TrialScene, seed: int,
               weights: np.ndarray | None = None) -> GraspSet:
@@ -122,6 +136,35 @@ class Strategist:
         return Choice(name, camera_pose @ grasps.poses[index], float(grasps.widths[index]),
                       float(grasps.scores[index]), str(grasps.kinds[index]), len(grasps))
 
+    def _second_look(self, scene: TrialScene, result: PipelineResult, grasps: GraspSet, seed: int) -> Choice:
+        """``pssnet_second_look``: when some place to look from would tell the samples apart, a grasp on both views'
+        samples; else PSSNet's grasp on the first view's."""
+        name, camera = "pssnet_second_look", scene.view.camera_pose
+        cameras = look_cameras(scene)
+        config = NextViewConfig(delta=self.sampler_config.delta)
+        small = scaled_intrinsics(scene.view.intrinsics, config.scale)
+        scores = rank_views(result.occupancy, result.weights, result.observation.pose,
+                            [np.linalg.inv(c.pose) @ camera for c in cameras], scene.view.intrinsics,
+                            [clutter_depth(scene.physics.clutter, c.pose, small) for c in cameras], config)
+        first_score = round(float(grasps.scores[0]) if len(grasps) else 0.0, 3)
+        for pick in np.argsort(-scores, kind="stable"):
+            if scores[pick] < LOOK_MIN_SEPARABILITY:
+                break
+            look, view = cameras[pick], render_look(scene, cameras[pick].pose)
+            if view is None or int(view.mask.sum()) < self.pipelines["pssnet"].config.min_mask_pixels:
+                continue
+            more = MoreView(view.depth, view.mask, view.intrinsics, np.linalg.inv(camera) @ look.pose)
+            try:
+                both = self._complete("pssnet", scene, seed, (more,))
+            except PipelineInputError:  # too little of the object in that view: the next best place
+                continue
+            notes = {"look_azimuth_deg": look.azimuth_deg, "look_elevation_deg": look.elevation_deg,
+                     "look_separability": round(float(scores[pick]), 3), "first_score": first_score}
+            return replace(self._choice(name, self._plan(both.occupancy, both, scene, seed, both.weights), 0, camera),
+                           notes=notes)
+        notes = {"look_separability": round(float(scores.max(initial=0.0)), 3), "first_score": first_score}
+        return replace(self._choice(name, grasps, 0, camera), notes=notes)
+
     def choose(self, scene: TrialScene, strategies: tuple[str, ...], seed: int) -> dict[str, Choice]:
         """Each strategy's grasp for ``scene``; ``seed`` seeds the latent noise, candidates and the random pick."""
         unknown = set(strategies) - set(STRATEGIES)
@@ -134,13 +177,15 @@ class Strategist:
         observation = result.observation
         choices: dict[str, Choice] = {}
         pssnet_grasps = None
-        if {"pssnet", "pssnet_confident", "random"} & set(strategies):
+        if {"pssnet", "pssnet_confident", "pssnet_second_look", "random"} & set(strategies):
             pssnet_grasps = self._plan(result.occupancy, result, scene, seed, result.weights)
         for name in strategies:
             if name == "pssnet":
                 choices[name] = self._choice(name, pssnet_grasps, 0, camera)
             elif name == "pssnet_confident":
                 choices[name] = self._choice(name, pssnet_grasps, pssnet_grasps.confident_choice(), camera)
+            elif name == "pssnet_second_look":
+                choices[name] = self._second_look(scene, result, pssnet_grasps, seed)
             elif name == "random":
                 holding = np.flatnonzero(pssnet_grasps.scores > 0.0)
                 rng = np.random.default_rng([seed, zlib.crc32(b"random")])
