@@ -72,7 +72,7 @@ def test_outputs_are_voxel_centres_around_the_observed_points(scene):
         assert distance.max() <= half_diagonal + 1e-6  # every observed point lies in one of the voxels
     points, index = result.merged()
     assert len(points) == 3 * len(result.known_occupied) and set(index.tolist()) == {0, 1, 2}
-    assert set(result.timings) == {"observe", "network", "centres", "grasps", "total"}
+    assert set(result.timings) == {"observe", "network", "views", "centres", "grasps", "total"}
 
 
 def test_should_stop_is_told_each_step_and_ends_the_run_there(scene):

@@ -216,7 +216,8 @@ class PipelineResult:
             for.
         up: (3,) the up vector used.
         seed: the latent-noise seed used.
-        timings: seconds per step (``observe``, ``network``, ``centres``, ``grasps``, ``total``).
+        timings: seconds per step (``observe``, ``network``, ``views``: scoring candidate views, ``centres``,
+            ``grasps``, ``total``).
         weights: (n,) share of the plausible shapes each sample stands for (sums to 1; equal for the posterior
             sampler).
         note: what the caller should know ("" when nothing): that no proposal agreed with the view, or that
@@ -477,11 +478,12 @@ class CompletionPipeline:
         weights = getattr(completion, "weights", None)  # the checked sampler's; the posterior's weigh alike
         if weights is None:
             weights = np.full(n, 1.0 / n, np.float32)
+        t2 = time.perf_counter()
         view_scores = np.zeros(0, np.float32)
         if candidates_from_first:
             view_scores = rank_views(completion.occupancy, weights, observation.pose, candidates_from_first, intrinsics,
                                      config=NextViewConfig(delta=config.check_delta)).astype(np.float32)
-        t2 = time.perf_counter()
+        t_views = time.perf_counter()
         pose = observation.pose
         completions = pose.occupied_centres_per_grid(completion.occupancy)
         known = pose.occupied_centres(observation.known_occupied).astype(np.float32)
@@ -496,7 +498,8 @@ class CompletionPipeline:
                 raise PipelineInputError(f"grasp planning failed: {error}") from error
             grasps = grasps.top(config.grasp_top_k, config.grasp_min_score)
         t4 = time.perf_counter()
-        timings = {"observe": t1 - t0, "network": t2 - t1, "centres": t3 - t2, "grasps": t4 - t3, "total": t4 - t0}
+        timings = {"observe": t1 - t0, "network": t2 - t1, "views": t_views - t2, "centres": t3 - t_views,
+                   "grasps": t4 - t3, "total": t4 - t0}
         return PipelineResult(observation=observation, voxel_size=grid.voxel_size, known_occupied=known,
                               completions=completions, occupancy=completion.occupancy, grasps=grasps, up=up,
                               seed=seed, timings=timings, weights=np.asarray(weights, np.float32),
