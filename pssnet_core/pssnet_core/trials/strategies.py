@@ -18,6 +18,8 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
   best-ranked grasp on those samples; else PSSNet's grasp. The only strategy that sees more than one view. (Looking
   only when no grasp held for >= 90 % of the samples was tried first: the samples' agreement on a grasp proved a
   poor sign of a safe one, ``results/second_look/``);
+- ``one_completion_second_look``: the same look (where PSSNet's samples say, when they say so), then PSSNet's
+  posterior mean of both views fused, one shape: what the samples add once the robot has looked;
 - ``vae``: the VAE's samples, scored the same way;
 - ``one_completion``: PSSNet's posterior mean alone (``decode(mu) > 0.5``), one shape;
 - ``observed``: the observed voxels alone (the known-occupied grid);
@@ -44,13 +46,21 @@ from pssnet_core.grasps import GraspConfig, GraspSet, plan_grasps
 from pssnet_core.inference import Completer
 from pssnet_core.next_view import NextViewConfig, rank_views, scaled_intrinsics
 from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineConfig, PipelineInputError, PipelineResult
-from pssnet_core.trials import STRATEGIES
+from pssnet_core.trials import ACTIVE_STRATEGIES, STRATEGIES
 from pssnet_core.trials.physics import PhysicsConfig
 from pssnet_core.trials.plausible import PlausibleVariantsConfig, VariantJudge, plausible_shapes, posterior_shapes
 from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter, clutter_depth, look_cameras, render_look
 
 #: ``pssnet_second_look`` looks again when some place tells two of its samples apart at least this likely
 LOOK_MIN_SEPARABILITY = 0.5
+
+
+@dataclass
+class SecondLook:
+    """Both views completed by PSSNet (None when no look was taken), and where the look came from, for the records."""
+
+    result: PipelineResult | None
+    notes: dict[str, float | str]
 
 
 @dataclass
@@ -136,17 +146,16 @@ class Strategist:
         return Choice(name, camera_pose @ grasps.poses[index], float(grasps.widths[index]),
                       float(grasps.scores[index]), str(grasps.kinds[index]), len(grasps))
 
-    def _second_look(self, scene: TrialScene, result: PipelineResult, grasps: GraspSet, seed: int) -> Choice:
-        """``pssnet_second_look``: when some place to look from would tell the samples apart, a grasp on both views'
-        samples; else PSSNet's grasp on the first view's."""
-        name, camera = "pssnet_second_look", scene.view.camera_pose
+    def _second_look(self, scene: TrialScene, result: PipelineResult, seed: int) -> SecondLook:
+        """Where PSSNet's samples of the first view say to look from, and both views completed (no look when no place
+        tells two samples apart with probability >= :data:`LOOK_MIN_SEPARABILITY`)."""
+        camera = scene.view.camera_pose
         cameras = look_cameras(scene)
         config = NextViewConfig(delta=self.sampler_config.delta)
         small = scaled_intrinsics(scene.view.intrinsics, config.scale)
         scores = rank_views(result.occupancy, result.weights, result.observation.pose,
                             [np.linalg.inv(c.pose) @ camera for c in cameras], scene.view.intrinsics,
                             [clutter_depth(scene.physics.clutter, c.pose, small) for c in cameras], config)
-        first_score = round(float(grasps.scores[0]) if len(grasps) else 0.0, 3)
         for pick in np.argsort(-scores, kind="stable"):
             if scores[pick] < LOOK_MIN_SEPARABILITY:
                 break
@@ -159,11 +168,9 @@ class Strategist:
             except PipelineInputError:  # too little of the object in that view: the next best place
                 continue
             notes = {"look_azimuth_deg": look.azimuth_deg, "look_elevation_deg": look.elevation_deg,
-                     "look_separability": round(float(scores[pick]), 3), "first_score": first_score}
-            return replace(self._choice(name, self._plan(both.occupancy, both, scene, seed, both.weights), 0, camera),
-                           notes=notes)
-        notes = {"look_separability": round(float(scores.max(initial=0.0)), 3), "first_score": first_score}
-        return replace(self._choice(name, grasps, 0, camera), notes=notes)
+                     "look_separability": round(float(scores[pick]), 3)}
+            return SecondLook(both, notes)
+        return SecondLook(None, {"look_separability": round(float(scores.max(initial=0.0)), 3)})
 
     def choose(self, scene: TrialScene, strategies: tuple[str, ...], seed: int) -> dict[str, Choice]:
         """Each strategy's grasp for ``scene``; ``seed`` seeds the latent noise, candidates and the random pick."""
@@ -179,13 +186,24 @@ class Strategist:
         pssnet_grasps = None
         if {"pssnet", "pssnet_confident", "pssnet_second_look", "random"} & set(strategies):
             pssnet_grasps = self._plan(result.occupancy, result, scene, seed, result.weights)
+        look = self._second_look(scene, result, seed) if set(ACTIVE_STRATEGIES) & set(strategies) else None
         for name in strategies:
             if name == "pssnet":
                 choices[name] = self._choice(name, pssnet_grasps, 0, camera)
             elif name == "pssnet_confident":
                 choices[name] = self._choice(name, pssnet_grasps, pssnet_grasps.confident_choice(), camera)
             elif name == "pssnet_second_look":
-                choices[name] = self._second_look(scene, result, pssnet_grasps, seed)
+                first_score = round(float(pssnet_grasps.scores[0]) if len(pssnet_grasps) else 0.0, 3)
+                if look.result is None:
+                    choice = self._choice(name, pssnet_grasps, 0, camera)
+                else:
+                    both = look.result
+                    choice = self._choice(name, self._plan(both.occupancy, both, scene, seed, both.weights), 0, camera)
+                choices[name] = replace(choice, notes={**look.notes, "first_score": first_score})
+            elif name == "one_completion_second_look":
+                seen = look.result if look.result is not None else result
+                choice = self._choice(name, self._plan(posterior_mean(self.pssnet, seen), seen, scene, seed), 0, camera)
+                choices[name] = replace(choice, notes=dict(look.notes))
             elif name == "random":
                 holding = np.flatnonzero(pssnet_grasps.scores > 0.0)
                 rng = np.random.default_rng([seed, zlib.crc32(b"random")])
