@@ -289,7 +289,8 @@ def save_filmstrip(path: Path, scenario: str, films: list[SceneFilm]) -> None:
     plt.close(fig)
 
 
-def _read_records(path: Path) -> list[TrialRecord]:
+def read_records(path: Path) -> list[TrialRecord]:
+    """The records of a run's records.jsonl (none when the file does not exist)."""
     if not path.is_file():
         return []
     return [TrialRecord(**json.loads(line)) for line in path.read_text().splitlines() if line.strip()]
@@ -310,7 +311,7 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
         raise ValueError(f"{out} holds trials made with other settings; use another --out or remove it")
     settings.write_text(json.dumps(fingerprint, indent=1))
     records_path = out / "records.jsonl"
-    records = _read_records(records_path)
+    records = read_records(records_path)
     done = {(r.scenario, r.index, r.strategy) for r in records}
     factory = SceneFactory(config.scenario, config.grasps.gripper)
     bar = tqdm(total=len(config.scenarios) * config.trials * len(config.strategies), unit="trial",
