@@ -56,7 +56,7 @@ def main() -> None:
     for name, steps in times.items():
         p50 = {step: statistics.median(values) for step, values in steps.items()}
         print(f"  {name:30s} call {p50['call']:7.1f} ({p50['call'] / base:.2f}x)  observe {p50['observe']:6.1f}  "
-              f"network {p50["network"]:6.1f}  views {p50["views"]:6.1f}  grasps {p50['grasps']:6.1f}")
+              f"network {p50['network']:6.1f}  views {p50['views']:6.1f}  grasps {p50['grasps']:6.1f}")
 
 
 if __name__ == "__main__":

@@ -104,12 +104,12 @@ def _render(points: np.ndarray, sample: np.ndarray, count: int, voxel_size: floa
             flats.append(sample[covered] * (h * w) + pv[covered].astype(np.int64) * w + pu[covered].astype(np.int64))
             depths.append(near[covered])
     flat, near = np.concatenate(flats), np.concatenate(depths)
-    # The nearest voxel per pixel: sorted by pixel, then depth, the first of each pixel's run.
-    order = np.lexsort((near, flat))
-    flat, near = flat[order], near[order]
-    first = np.ones(len(flat), dtype=bool)
-    first[1:] = flat[1:] != flat[:-1]
-    depth[flat[first]] = near[first]
+    if len(flat):
+        # The nearest voxel per pixel: grouped by pixel, the minimum of each group.
+        order = np.argsort(flat)
+        flat, near = flat[order], near[order]
+        starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
+        depth[flat[starts]] = np.minimum.reduceat(near, starts)
     return depth.reshape(count, h, w)
 
 
