@@ -175,6 +175,8 @@ def test_the_pipeline_completes_two_views_and_names_a_bad_second_one(mug_views):
                           candidate_views=(first_from(front, back), np.eye(4)))
     assert scored.view_scores.shape == (2,) and one.view_scores.shape == (0,)
     assert scored.view_scores[1] <= 0.1 < scored.view_scores[0]
+    with pytest.raises(PipelineInputError, match="0 further views and 65 candidate views: at most 8 and 64 per call"):
+        pipeline.run(front.depth, front.mask, front.intrinsics, candidate_views=[np.eye(4)] * 65)
     with pytest.raises(PipelineInputError, match="candidate view 1"):
         pipeline.run(front.depth, front.mask, front.intrinsics, candidate_views=(np.eye(4), 2 * np.eye(4)))
     for broken, what in ((MoreView(back.depth, np.zeros_like(back.mask), back.intrinsics, more.first_from_camera),

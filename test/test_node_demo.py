@@ -35,6 +35,12 @@ def test_demo_writes_the_figure_prints_the_summary_and_exits_0(tmp_path):
     assert png.is_file() and png.stat().st_size > 20_000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert re.search(r"samples: 6; voxel \d+\.\d+ mm; observed voxels: \d+; points per sample: min \d+", output)
     assert re.search(r"service latency \(request -> response, \d+ calls\): median \d+ ms", output)
+    # The second look: the node scored the 16 places and completed both views (more observed voxels).
+    look = re.search(r"second look: of 16 places round the mug, the samples disagree most about the view from azimuth "
+                     r"\d+, \d+ deg up \(probability ([\d.]+) that it tells two samples apart", output)
+    added = re.search(r"with that view added: observed voxels (\d+) -> (\d+), top grasp's score", output)
+    assert look and added, output[-3000:]
+    assert int(added.group(2)) > int(added.group(1))
     assert "all processes stopped cleanly" in output and "stale shared memory" not in output
     assert "Traceback" not in output
     with Reader(out / "demo.mcap") as bag:  # what the camera sent and the node answered, one message each

@@ -49,6 +49,9 @@ FALLBACK_VOXEL_SIZE = GridConfig().voxel_size
 UP_VECTOR_LENGTH = (1e-6, 1e6)
 #: the steps of :meth:`CompletionPipeline.run` after the observation, as its ``should_stop`` is told them
 STEP_NETWORK, STEP_GRASPS = "network", "grasps"
+#: Further views and candidate places one call takes: each further view adds an observation and a check along its
+#: rays (~3 ms), each place ~8 ms of scoring (BENCHMARKS.md, "A second look's cost"); more is a client's mistake.
+MAX_MORE_VIEWS, MAX_CANDIDATE_VIEWS = 8, 64
 
 
 def up_vector_warning(tilt_deg: float, limit_deg: float) -> str:
@@ -444,6 +447,9 @@ class CompletionPipeline:
             check_object_scale(observation.points, observation.pose, grid, config.min_object_voxels)
         except ObservationError as error:
             raise PipelineInputError(str(error)) from error
+        if len(more_views) > MAX_MORE_VIEWS or len(candidate_views) > MAX_CANDIDATE_VIEWS:
+            raise PipelineInputError(f"{len(more_views)} further views and {len(candidate_views)} candidate views: "
+                                     f"at most {MAX_MORE_VIEWS} and {MAX_CANDIDATE_VIEWS} per call")
         for number, view in enumerate(more_views, start=2):
             try:
                 view_depth = np.asarray(view.depth)

@@ -6,9 +6,11 @@
 2. starts ``synthetic_camera`` in another process: a mug on a table, its handle hidden, at a few Hz;
 3. calls ``/pssnet/sample_completions`` from this process with an empty depth image, so the node completes
    the latest synchronised depth/mask/camera_info it received on its topics;
-4. writes ``completions.png`` (the observation, several sampled completions, the best grasps) and ``demo.mcap``
+4. takes a second look: asks the node which of 16 places round the mug would best tell its samples apart
+   (``candidate_views``), renders the mug from there and calls again with both views (``more_*``);
+5. writes ``completions.png`` (the observation, several sampled completions, the best grasps) and ``demo.mcap``
    (the depth/mask/camera_info set the node completed and its answer as the node's four topics) to ``--out``,
-   prints a summary (samples, points, latency), stops both processes with SIGINT and exits 0.
+   prints a summary (samples, points, latency, the second look), stops both processes with SIGINT and exits 0.
 
 Everything runs on its own ROS domain with discovery limited to this machine.
 """
@@ -19,6 +21,7 @@ import argparse
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -30,7 +33,7 @@ from pssnet_ros.completion_io import STREAMS, outputs_from_response, stamp_ns
 from pssnet_testing.client import SAMPLE_SERVICE, RosClient
 from pssnet_testing.node_under_test import NodeUnderTest
 from pssnet_testing.processes import RosProcess, claim_domain_id, ros_env, stale_shm_files
-from pssnet_testing.synthetic_camera import SceneOptions, render_scene, view_messages
+from pssnet_testing.synthetic_camera import FRAME_ID, SceneOptions, render_scene, view_messages
 
 if TYPE_CHECKING:
     from pssnet_interfaces.srv import SampleCompletions
@@ -105,6 +108,56 @@ def run_client(domain_id: int, samples: int, calls: int, timeout: float):
             response, latency = call_until_ready(ros, client, request, timeout)
             latencies.append(latency)
         return response, latencies or [first]
+
+
+#: The places the demo's second look may come from: azimuth round the mug and elevation (degrees); the camera's own
+#: place is azimuth 180 at its tilt.
+LOOK_PLACES = tuple((float(a), float(e)) for e in (15, 45) for a in range(0, 360, 45))
+CAMERA_SIDE = LOOK_PLACES.index((180.0, 15.0))  # the camera's azimuth, a little lower than its 30 degrees
+
+
+@dataclass
+class SecondLook:
+    """The demo's second look: the places' scores, the place chosen, and the answers before and after."""
+
+    scores: list[float]
+    place: tuple[float, float]
+    before: SampleCompletions.Response
+    after: SampleCompletions.Response
+
+
+def take_second_look(domain_id: int, options: SceneOptions, view: RenderedView, samples: int,
+                     timeout: float) -> SecondLook:
+    """Asks where to look from (the first view in the request, every place of :data:`LOOK_PLACES` as a candidate),
+    renders the mug from the best place and completes both views."""
+    from pssnet_interfaces.srv import SampleCompletions
+    from std_msgs.msg import Header
+
+    from pssnet_ros.conversions import matrix_to_pose
+
+    first_from_world = np.linalg.inv(view.camera_pose)
+    looks = [render_scene(replace(options, tilt_deg=elevation), azimuth_deg=azimuth)
+             for azimuth, elevation in LOOK_PLACES]
+    header = Header(frame_id=FRAME_ID)
+    depth, mask, info = view_messages(view, "32FC1", header)
+    request = SampleCompletions.Request(depth=depth, mask=mask, camera_info=info, num_samples=samples,
+                                        compute_grasps=True,
+                                        candidate_views=[matrix_to_pose(first_from_world @ look.camera_pose)
+                                                         for look in looks])
+    with RosClient(domain_id, "pssnet_demo_look") as ros:
+        client = ros.service(SampleCompletions, SAMPLE_SERVICE, timeout)
+        before = ros.call(client, request, timeout)
+        if not before.success or len(before.candidate_view_scores) != len(looks):
+            raise DemoError(f"asking where to look failed: {before.message}")
+        best = int(np.argmax(before.candidate_view_scores))
+        more_depth, more_mask, more_info = view_messages(looks[best], "32FC1", header)
+        request.more_depths, request.more_masks, request.more_camera_infos = [more_depth], [more_mask], [more_info]
+        request.more_camera_poses = [matrix_to_pose(first_from_world @ looks[best].camera_pose)]
+        request.candidate_views = []
+        after = ros.call(client, request, timeout)
+        if not after.success:
+            raise DemoError(f"completing both views failed: {after.message}")
+    return SecondLook([float(x) for x in before.candidate_view_scores], LOOK_PLACES[best], before, after)
 
 
 def write_figure(path: Path, view, response, max_samples: int = 4) -> None:
@@ -254,6 +307,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"[demo]   node: {response.message}")
         print(f"[demo]   figure: {out}")
         print(f"[demo]   bag: {bag} (the set the node completed and its answer, as topics)")
+        look = take_second_look(domain, options, view, args.samples, args.timeout)
+        top = [f"{r.grasp_scores[0]:.2f}" if len(r.grasp_scores) else "none" for r in (look.before, look.after)]
+        print(f"[demo] second look: of {len(look.scores)} places round the mug, the samples disagree most about the "
+              f"view from azimuth {look.place[0]:.0f}, {look.place[1]:.0f} deg up (probability {max(look.scores):.2f} "
+              f"that it tells two samples apart; from the camera's side {look.scores[CAMERA_SIDE]:.2f})")
+        print(f"[demo]   with that view added: observed voxels {look.before.known_occupied.width} -> "
+              f"{look.after.known_occupied.width}, top grasp's score {top[0]} -> {top[1]}")
         code = 0
     except (DemoError, TimeoutError, RuntimeError) as error:
         print(f"[demo] error: {error}", file=sys.stderr)

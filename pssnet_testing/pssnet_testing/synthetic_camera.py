@@ -53,13 +53,14 @@ class SceneOptions:
     tilt_deg: float = 30.0
 
 
-def render_scene(options: SceneOptions) -> RenderedView:
-    """Renders the scene (640x480, Kinect-like intrinsics, depth in whole millimetres)."""
+def render_scene(options: SceneOptions, azimuth_deg: float = 180.0) -> RenderedView:
+    """Renders the scene (640x480, Kinect-like intrinsics, depth in whole millimetres), from the camera's place or
+    from ``azimuth_deg`` round the mug (the same distance and tilt)."""
     from pssnet_core.data.scenes import render_view
     from pssnet_core.shapes import make_shape
 
     return render_view(make_shape("mug", options.mug_seed), yaw_deg=options.yaw_deg, distance=options.distance,
-                       tilt_deg=options.tilt_deg)
+                       tilt_deg=options.tilt_deg, azimuth_deg=azimuth_deg)
 
 
 def view_messages(view: RenderedView, depth_encoding: str = "32FC1", header: Header | None = None
