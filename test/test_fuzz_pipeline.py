@@ -231,6 +231,54 @@ def test_any_input_completes_or_raises_pipeline_input_error(data: st.DataObject,
     assert_a_sound_result(result, requested, pipeline.config, grasps)
 
 
+@st.composite
+def transforms(draw: st.DrawFn) -> np.ndarray:
+    """A camera pose as a client might send it: rigid (any rotation, near or far), or broken (NaN, scaled,
+    mirrored, of the wrong shape)."""
+    from scipy.spatial.transform import Rotation
+
+    rotation = Rotation.from_rotvec(draw(st.tuples(*[st.floats(-3.2, 3.2)] * 3))).as_matrix()
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation
+    matrix[:3, 3] = draw(st.tuples(*[st.one_of(st.floats(-1.0, 1.0), st.sampled_from([0.0, 1e6, -1e6]))] * 3))
+    kind = draw(st.sampled_from(["rigid"] * 4 + ["nan", "scaled", "mirrored", "shape"]))
+    if kind == "nan":
+        matrix[draw(st.integers(0, 3)), draw(st.integers(0, 3))] = math.nan
+    elif kind == "scaled":
+        matrix[:3, :3] *= draw(st.floats(0.1, 10.0).filter(lambda f: abs(f - 1.0) > 1e-3))
+    elif kind == "mirrored":
+        matrix[:3, 2] *= -1.0
+    elif kind == "shape":
+        matrix = matrix[:3]
+    return matrix
+
+
+@given(data=st.data(), grasps=compute_grasps)
+def test_any_further_view_or_candidate_place_completes_or_raises_pipeline_input_error(data: st.DataObject,
+                                                                                      grasps: bool):
+    """A second look as a client may send it: the view from behind (or a mutated one), at any pose, and candidate
+    places anywhere (behind the object, at the camera, far away, broken)."""
+    from pssnet_core.pipeline import MoreView
+
+    view, depth, mask, intrinsics = cropped_view()
+    pipeline = pipeline_for(tuple(view.up), False)
+    more = MoreView(data.draw(mutated_depths(depth), label="second depth"),
+                    data.draw(mutated_masks(mask), label="second mask"),
+                    data.draw(mutated_intrinsics(intrinsics), label="second intrinsics"),
+                    data.draw(transforms(), label="second pose"))
+    candidates = data.draw(st.lists(transforms(), max_size=3), label="candidate views")
+    try:
+        result = pipeline.run(depth, mask, intrinsics, None, grasps, more_views=(more,), candidate_views=candidates)
+    except PipelineInputError as error:
+        assert str(error)
+        event(f"refused: {refusal_kind(error)}")
+        return
+    event("completed")
+    assert_a_sound_result(result, None, pipeline.config, grasps)
+    assert len(result.observation.views) == 2 and len(result.view_scores) == len(candidates)
+    assert np.all((result.view_scores >= 0.0) & (result.view_scores <= 1.0))
+
+
 @pytest.fixture(scope="module")
 def tiny_model_pipeline(tmp_path_factory: pytest.TempPathFactory) -> CompletionPipeline:
     view, *_ = cropped_view()

@@ -60,8 +60,18 @@ def test_fusing_the_view_from_behind_adds_the_handle_and_keeps_each_views_eviden
     assert np.array_equal(again.known_occupied, observation.known_occupied)
 
 
-def test_a_transform_that_is_not_rigid_is_refused(mug_views):
+def test_a_transform_that_is_not_rigid_or_does_not_fit_the_view_is_refused(mug_views):
     front, back, observation, _ = mug_views
+    side = render_view(make_shape("mug", 2000003), yaw_deg=0.0, distance=0.6, tilt_deg=20.0, azimuth_deg=90.0)
+    # The pose inverted (the classic tf mistake): the side view then sees through the front's surface.
+    with pytest.raises(ObservationError, match=r"sees through \d+ of the \d+ voxels .*\(not its inverse\)"):
+        fuse_view(observation, side.depth, side.mask, side.intrinsics, np.linalg.inv(first_from(front, side)))
+    # In millimetres: the view's points land far outside the grid.
+    scaled = first_from(front, side)
+    scaled[:3, 3] *= 1000.0
+    with pytest.raises(ObservationError, match=r"only 0% of this view's object points fall in the first view's grid"):
+        fuse_view(observation, side.depth, side.mask, side.intrinsics, scaled)
+    assert len(fuse_view(observation, side.depth, side.mask, side.intrinsics, first_from(front, side)).views) == 2
     for bad, what in ((np.eye(3), "4x4"), (np.diag([1.0, 1.0, 2.0, 1.0]), "rotation"),
                       (np.diag([1.0, 1.0, -1.0, 1.0]), "rotation"), (np.full((4, 4), np.nan), "finite")):
         with pytest.raises(ObservationError, match=what):

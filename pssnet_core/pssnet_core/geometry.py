@@ -665,6 +665,12 @@ def rigid_inverse(transform: np.ndarray, name: str) -> np.ndarray:
     return inverse
 
 
+#: :func:`fuse_view`'s checks of a further view's pose: most of its object points lie in the first view's grid, and it
+#: sees through little of the surface the views before saw (the true poses of the trials' looks: none; an inverted
+#: pose: 7-53 % of it, or its points outside the grid).
+MIN_POINTS_IN_GRID, MAX_SEEN_THROUGH = 0.5, 0.05
+
+
 def fuse_view(observation: Observation, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
               first_from_camera: np.ndarray, min_depth: float = 0.1, max_depth: float = 5.0,
               min_points: int = 10) -> Observation:
@@ -682,8 +688,9 @@ def fuse_view(observation: Observation, depth: np.ndarray, mask: np.ndarray, int
         min_depth, max_depth, min_points: as for :func:`observe`.
 
     Raises:
-        ObservationError: the new view has too few masked readings, or ``first_from_camera`` is not a rigid
-            transform.
+        ObservationError: the new view has too few masked readings, ``first_from_camera`` is not a rigid
+            transform, or the view does not fit the observation at that pose (less than half of its object points
+            in the grid, or it sees through more than 5 % of the surface seen before: a wrong or inverted pose).
     """
     transform = checked_rigid(first_from_camera, "first_from_camera")
     rotation, translation = transform[:3, :3], transform[:3, 3]
@@ -693,9 +700,18 @@ def fuse_view(observation: Observation, depth: np.ndarray, mask: np.ndarray, int
     pose_here = GridPose(rotation=rotation.T @ pose.rotation, origin=rotation.T @ (pose.origin - translation),
                          voxel_size=pose.voxel_size, size=pose.size)
     ijk, inside = pose_here.voxel_indices(points)
+    hint = "is first_from_camera this camera's pose in the first camera's frame (not its inverse), in metres?"
+    if inside.mean() < MIN_POINTS_IN_GRID:
+        raise ObservationError(f"only {inside.mean():.0%} of this view's object points fall in the first view's grid "
+                               f"(need {MIN_POINTS_IN_GRID:.0%}): {hint}")
     occupied = np.zeros((pose.size,) * 3, dtype=bool)
     occupied[tuple(ijk[inside].T)] = True
     free = carve_free_space(depth, valid_depth(depth, min_depth, max_depth), intrinsics, pose_here)
+    seen_through, surface = (int(np.count_nonzero(g)) for g in (free & observation.known_occupied,
+                                                                 observation.known_occupied))
+    if seen_through > MAX_SEEN_THROUGH * max(surface, 1):
+        raise ObservationError(f"this view sees through {seen_through} of the {surface} voxels where the views before "
+                               f"saw surface (at most {MAX_SEEN_THROUGH:.0%}): {hint}")
     known_occupied = observation.known_occupied | occupied
     new = ViewEvidence(occupied, free & ~occupied, translation.copy())
     return Observation(known_occupied=known_occupied, known_free=(observation.known_free | free) & ~known_occupied,
