@@ -42,11 +42,13 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--checkpoint", default=None, help="PSSNet checkpoint (default: the shipped model)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     trials = TrialsConfig()
     factory = SceneFactory(trials.scenario, trials.grasps.gripper)
-    pipeline = CompletionPipeline(Completer.from_checkpoint(None, threads=1), PipelineConfig(num_samples=20))
+    pipeline = CompletionPipeline(Completer.from_checkpoint(args.checkpoint, threads=1),
+                                  PipelineConfig(num_samples=20))
     config = NextViewConfig()
     rows = []
     for index in range(args.scenes):
