@@ -117,7 +117,7 @@ CAMERA_SIDE = LOOK_PLACES.index((180.0, 15.0))  # the camera's azimuth, a little
 
 
 @dataclass
-class SecondLook:
+class DemoLook:
     """The demo's second look: the places' scores, the place chosen, and the answers before and after."""
 
     scores: list[float]
@@ -127,7 +127,7 @@ class SecondLook:
 
 
 def take_second_look(domain_id: int, options: SceneOptions, view: RenderedView, samples: int,
-                     timeout: float) -> SecondLook:
+                     timeout: float) -> DemoLook:
     """Asks where to look from (the first view in the request, every place of :data:`LOOK_PLACES` as a candidate),
     renders the mug from the best place and completes both views."""
     from pssnet_interfaces.srv import SampleCompletions
@@ -157,7 +157,7 @@ def take_second_look(domain_id: int, options: SceneOptions, view: RenderedView, 
         after = ros.call(client, request, timeout)
         if not after.success:
             raise DemoError(f"completing both views failed: {after.message}")
-    return SecondLook([float(x) for x in before.candidate_view_scores], LOOK_PLACES[best], before, after)
+    return DemoLook([float(x) for x in before.candidate_view_scores], LOOK_PLACES[best], before, after)
 
 
 def write_figure(path: Path, view, response, max_samples: int = 4) -> None:
