@@ -92,6 +92,12 @@ class Parts:
     depth_msg: dict[str, Any] = field(default_factory=dict)
     mask_msg: dict[str, Any] = field(default_factory=dict)
     info_msg: dict[str, Any] = field(default_factory=dict)
+    #: a second look: the same view again at each of these poses (first <- this camera, as 7 numbers: x, y, z and a
+    #: quaternion x, y, z, w); ``more_masks`` how many masks go with them (None: one each)
+    more_poses: list[tuple[float, ...]] = field(default_factory=list)
+    more_masks: int | None = None
+    #: candidate places to score (poses as above)
+    candidates: list[tuple[float, ...]] = field(default_factory=list)
 
 
 Mutation = Callable[[Parts, np.random.Generator], Parts]
@@ -146,6 +152,21 @@ def resize_depth(parts: Parts, rng: np.random.Generator) -> Parts:
 def unsynchronised(parts: Parts, rng: np.random.Generator) -> Parts:
     """The mask's stamp 0.05-5 s off the depth's (sync_tolerance is 0.01 s)."""
     return replace(parts, stamp_offsets_s=(0.0, float(rng.uniform(0.05, 5.0)), 0.0))
+
+
+IDENTITY_POSE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def random_pose(rng: np.random.Generator, reach: float = 1.0) -> tuple[float, ...]:
+    """A rigid pose: a translation within ``reach`` metres and a random unit quaternion."""
+    q = rng.normal(size=4)
+    return (*(rng.uniform(-reach, reach, 3)), *(q / np.linalg.norm(q)))
+
+
+def broken_pose(rng: np.random.Generator) -> tuple[float, ...]:
+    """A pose no transform has: NaN or infinite numbers, or a zero quaternion."""
+    return pick([(np.nan, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), (0.0, 0.0, np.inf, 0.0, 0.0, 0.0, 1.0),
+                 (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, np.nan, 0.0, 0.0, 1.0)], rng)
 
 
 DEPTH_BYTES = 640 * 480 * 4
@@ -206,12 +227,25 @@ REQUEST_FAMILIES: dict[str, tuple[str, Mutation]] = {
     # request fields
     "num_samples_too_many": (REFUSAL, lambda p, rng: replace(p, num_samples=pick([101, 1000, 2**32 - 1], rng))),
     "stamps_unsynchronised": (REFUSAL, unsynchronised),
+    # a second look and candidate places
+    "valid_second_look_same_view": (SUCCESS, lambda p, rng: replace(p, more_poses=[IDENTITY_POSE])),
+    "valid_candidate_places": (SUCCESS, lambda p, rng: replace(p, candidates=[
+        random_pose(rng) for _ in range(int(rng.integers(1, 17)))])),
+    "second_look_far_away": (REFUSAL, lambda p, rng: replace(p, more_poses=[(0.0, 0.0, pick([5.0, 1e3, -1e6], rng),
+                                                                             0.0, 0.0, 0.0, 1.0)])),
+    "second_look_random_pose": (EITHER, lambda p, rng: replace(p, more_poses=[random_pose(rng, 0.3)])),
+    "second_look_broken_pose": (REFUSAL, lambda p, rng: replace(p, more_poses=[broken_pose(rng)])),
+    "second_look_lengths": (REFUSAL, lambda p, rng: replace(p, more_poses=[IDENTITY_POSE] * 2, more_masks=1)),
+    "second_look_too_many": (REFUSAL, lambda p, rng: replace(p, more_poses=[IDENTITY_POSE] * 9)),
+    "candidate_places_broken": (REFUSAL, lambda p, rng: replace(p, candidates=[IDENTITY_POSE, broken_pose(rng)])),
+    "candidate_places_too_many": (REFUSAL, lambda p, rng: replace(p, candidates=[IDENTITY_POSE] * 65)),
 }
 
 #: a valid family is drawn this many times as often as a corrupt one: about a quarter of all requests are valid
 VALID_WEIGHT = 2.0
 #: families whose mutation only exists in a request (its num_samples, its stamps): not drawn for topic sets
-REQUEST_ONLY = {"valid_default_samples_grasps", "valid_unset_stamps", "num_samples_too_many", "stamps_unsynchronised"}
+REQUEST_ONLY = {"valid_default_samples_grasps", "valid_unset_stamps", "num_samples_too_many", "stamps_unsynchronised",
+                *(name for name in REQUEST_FAMILIES if "second_look" in name or "candidate_places" in name)}
 #: share of topic sets with a stamp fault instead of a content mutation, and of sets sent twice
 STAMP_FAULT_SHARE, REPEAT_SHARE = 0.25, 0.05
 
@@ -304,12 +338,25 @@ class Fuzzer:
                 self._raw_edits(info, parts.info_msg))
 
     def request(self, family: str, stamp_ns: int) -> Any:
+        from geometry_msgs.msg import Pose
         from pssnet_interfaces.srv import SampleCompletions
+
+        def pose(numbers: tuple[float, ...]) -> Pose:
+            message = Pose()
+            message.position.x, message.position.y, message.position.z = numbers[:3]
+            o = message.orientation
+            o.x, o.y, o.z, o.w = numbers[3:]
+            return message
 
         parts = self.parts(family)
         depth, mask, info = self.messages(parts, stamp_ns)
+        masks = len(parts.more_poses) if parts.more_masks is None else parts.more_masks
         return SampleCompletions.Request(depth=depth, mask=mask, camera_info=info, num_samples=parts.num_samples,
-                                         compute_grasps=parts.compute_grasps)
+                                         compute_grasps=parts.compute_grasps,
+                                         more_depths=[depth] * len(parts.more_poses), more_masks=[mask] * masks,
+                                         more_camera_infos=[info] * len(parts.more_poses),
+                                         more_camera_poses=[pose(p) for p in parts.more_poses],
+                                         candidate_views=[pose(p) for p in parts.candidates])
 
     def topic_set(self, stamp_ns: int) -> tuple[str, list[tuple[str, Any]]]:
         """A family name and the (stream, message) pairs to publish: depth, mask, camera_info, one of them
