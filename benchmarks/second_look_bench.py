@@ -3,7 +3,7 @@
 Times ``CompletionPipeline.run`` (the node's work for one request, no ROS transport) on a held-out mug with its
 handle hidden, shipped model, the node's default (checked) sampler, 20 samples, grasps on, in three settings
 interleaved call by call: the view alone; the view with the 16 places of the trials' ring
-(:func:`pssnet_core.trials.scenarios.look_cameras`' azimuths and elevations) scored; the view and a second one from
+(:data:`pssnet_core.next_view.RING_PLACES`) scored; the view and a second one from
 behind fused. Prints p50 per setting and step, and the ratios to the first (only ratios compare on a loaded machine).
 
     .venv/bin/python benchmarks/second_look_bench.py [--repeats 15] [--threads 2]
@@ -20,9 +20,9 @@ import torch
 
 from pssnet_core.bench import cpu_kind
 from pssnet_core.data.scenes import orbit_camera, render_view
+from pssnet_core.next_view import RING_PLACES
 from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineConfig
 from pssnet_core.shapes import make_shape, split_seeds
-from pssnet_core.trials.scenarios import LOOK_AZIMUTHS_DEG, LOOK_ELEVATIONS_DEG
 
 
 def main() -> None:
@@ -37,7 +37,7 @@ def main() -> None:
     first_from_back = np.linalg.inv(front.camera_pose) @ back.camera_pose
     target = front.camera_pose[:3, 3] + 0.6 * front.camera_pose[:3, 2]
     candidates = [np.linalg.inv(front.camera_pose) @ orbit_camera(target, 0.6, e, a)
-                  for e in LOOK_ELEVATIONS_DEG for a in LOOK_AZIMUTHS_DEG]
+                  for a, e in RING_PLACES]
     pipeline = CompletionPipeline.from_checkpoint(None, PipelineConfig(up_vector=tuple(front.up)), threads=args.threads)
     settings = {"one view": {}, "one view + 16 places scored": {"candidate_views": candidates},
                 "two views fused": {"more_views": (MoreView(back.depth, back.mask, back.intrinsics, first_from_back),)}}

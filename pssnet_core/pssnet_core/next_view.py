@@ -19,6 +19,11 @@ import numpy as np
 
 from pssnet_core.geometry import CameraIntrinsics, GridPose
 
+#: A ring of places to look from round an object, (azimuth, elevation) in degrees (azimuth 180: the side of a camera
+#: at the default orbit, ``data.scenes.orbit_camera``): every 45 degrees round, 15 and 45 degrees up. The trials'
+#: robot, the demo and the benchmark look from these.
+RING_PLACES: tuple[tuple[float, float], ...] = tuple((float(a), float(e)) for e in (15, 45) for a in range(0, 360, 45))
+
 
 @dataclass(frozen=True)
 class NextViewConfig:

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pssnet_core.grasps import GripperConfig
+from pssnet_core.next_view import RING_PLACES
 from pssnet_ros.bag import SENSOR_QOS, BagWriter
 from pssnet_ros.completion_io import STREAMS, outputs_from_response, stamp_ns
 from pssnet_testing.client import SAMPLE_SERVICE, RosClient
@@ -110,10 +111,9 @@ def run_client(domain_id: int, samples: int, calls: int, timeout: float):
         return response, latencies or [first]
 
 
-#: The places the demo's second look may come from: azimuth round the mug and elevation (degrees); the camera's own
-#: place is azimuth 180 at its tilt.
-LOOK_PLACES = tuple((float(a), float(e)) for e in (15, 45) for a in range(0, 360, 45))
-CAMERA_SIDE = LOOK_PLACES.index((180.0, 15.0))  # the camera's azimuth, a little lower than its 30 degrees
+#: Of the ring of places the demo's second look may come from, the one beside the camera (its azimuth, a little lower
+#: than its 30 degrees).
+CAMERA_SIDE = RING_PLACES.index((180.0, 15.0))
 
 
 @dataclass
@@ -128,7 +128,7 @@ class DemoLook:
 
 def take_second_look(domain_id: int, options: SceneOptions, view: RenderedView, samples: int,
                      timeout: float) -> DemoLook:
-    """Asks where to look from (the first view in the request, every place of :data:`LOOK_PLACES` as a candidate),
+    """Asks where to look from (the first view in the request, every place of :data:`RING_PLACES` as a candidate),
     renders the mug from the best place and completes both views."""
     from pssnet_interfaces.srv import SampleCompletions
     from std_msgs.msg import Header
@@ -137,7 +137,7 @@ def take_second_look(domain_id: int, options: SceneOptions, view: RenderedView, 
 
     first_from_world = np.linalg.inv(view.camera_pose)
     looks = [render_scene(replace(options, tilt_deg=elevation), azimuth_deg=azimuth)
-             for azimuth, elevation in LOOK_PLACES]
+             for azimuth, elevation in RING_PLACES]
     header = Header(frame_id=FRAME_ID)
     depth, mask, info = view_messages(view, "32FC1", header)
     request = SampleCompletions.Request(depth=depth, mask=mask, camera_info=info, num_samples=samples,
@@ -157,7 +157,7 @@ def take_second_look(domain_id: int, options: SceneOptions, view: RenderedView, 
         after = ros.call(client, request, timeout)
         if not after.success:
             raise DemoError(f"completing both views failed: {after.message}")
-    return DemoLook([float(x) for x in before.candidate_view_scores], LOOK_PLACES[best], before, after)
+    return DemoLook([float(x) for x in before.candidate_view_scores], RING_PLACES[best], before, after)
 
 
 def write_figure(path: Path, view, response, max_samples: int = 4) -> None:

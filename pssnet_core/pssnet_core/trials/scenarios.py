@@ -49,6 +49,7 @@ from pssnet_core.data.scenes import (
 )
 from pssnet_core.geometry import CameraIntrinsics, GridPose
 from pssnet_core.grasps import GraspCandidates, GripperConfig
+from pssnet_core.next_view import RING_PLACES
 from pssnet_core.shapes import Shape, make_shape, split_seeds
 from pssnet_core.shapes.independent import make_independent_shape
 from pssnet_core.trials import OBJECT_SOURCES, SCENARIOS
@@ -370,12 +371,6 @@ class SceneFactory:
         return shape, pose, camera, (), ((0.0, 0.0, 0.15),), {"yaw_deg": round(yaw, 2)}, yaw_range if mug else None
 
 
-#: where a second look may come from (:func:`look_cameras`): azimuths about the object (degrees; 180 is the first
-#: camera's side, the robot's arm reaches round to the far side) and elevations
-LOOK_AZIMUTHS_DEG = (0.0, 45.0, 90.0, 135.0, 180.0, 225.0, 270.0, 315.0)
-LOOK_ELEVATIONS_DEG = (15.0, 45.0)
-
-
 @dataclass(frozen=True)
 class LookCamera:
     """A place to look from: ``pose`` world <- camera, at ``azimuth_deg`` and ``elevation_deg`` about the object."""
@@ -387,7 +382,7 @@ class LookCamera:
 
 def look_cameras(scene: TrialScene) -> list[LookCamera]:
     """Where a robot could take a second look from: a ring about the centre of what the first camera saw of the
-    object, at that camera's distance, at every :data:`LOOK_AZIMUTHS_DEG` and :data:`LOOK_ELEVATIONS_DEG` (the
+    object, at that camera's distance, at every place of :data:`pssnet_core.next_view.RING_PLACES` (the
     first camera's own place left out). Some look through clutter; the choice of where to look
     (:mod:`pssnet_core.next_view`) knows the clutter and sees that."""
     view = scene.view
@@ -398,11 +393,10 @@ def look_cameras(scene: TrialScene) -> list[LookCamera]:
     distance = float(np.linalg.norm(view.camera_pose[:3, 3] - target))
     first = view.camera_pose[:3, 3]
     cameras = []
-    for elevation in LOOK_ELEVATIONS_DEG:
-        for azimuth in LOOK_AZIMUTHS_DEG:
-            pose = orbit_camera(target, distance, elevation, azimuth)
-            if np.linalg.norm(pose[:3, 3] - first) > 0.05:
-                cameras.append(LookCamera(azimuth, elevation, pose))
+    for azimuth, elevation in RING_PLACES:
+        pose = orbit_camera(target, distance, elevation, azimuth)
+        if np.linalg.norm(pose[:3, 3] - first) > 0.05:
+            cameras.append(LookCamera(azimuth, elevation, pose))
     return cameras
 
 
