@@ -373,6 +373,8 @@ class CompletionPipeline:
     def check_input(self, depth: np.ndarray, mask: np.ndarray, intrinsics: CameraIntrinsics,
                     num_samples: int | None, config: PipelineConfig) -> int:
         """Validates one request; returns the number of samples to draw."""
+        if not np.issubdtype(depth.dtype, np.floating):
+            raise PipelineInputError(f"depth must be float metres, got dtype {depth.dtype}")
         n = config.num_samples if not num_samples else int(num_samples)
         if n < 0 or n > config.max_num_samples:
             raise PipelineInputError(f"num_samples {n} is out of range: ask for 1..{config.max_num_samples} "
@@ -434,10 +436,7 @@ class CompletionPipeline:
         """
         t0 = time.perf_counter()
         config = self._config  # one consistent snapshot even if the node updates parameters meanwhile
-        depth = np.asarray(depth)
-        if not np.issubdtype(depth.dtype, np.floating):
-            raise PipelineInputError(f"depth must be float metres, got dtype {depth.dtype}")
-        mask = np.asarray(mask)
+        depth, mask = np.asarray(depth), np.asarray(mask)
         n = self.check_input(depth, mask, intrinsics, num_samples, config)
         grid = self.grid_config(config)
         try:
@@ -452,13 +451,10 @@ class CompletionPipeline:
                                      f"at most {MAX_MORE_VIEWS} and {MAX_CANDIDATE_VIEWS} per call")
         for number, view in enumerate(more_views, start=2):
             try:
-                view_depth = np.asarray(view.depth)
-                if not np.issubdtype(view_depth.dtype, np.floating):
-                    raise PipelineInputError(f"depth must be float metres, got dtype {view_depth.dtype}")
-                self.check_input(view_depth, np.asarray(view.mask), view.intrinsics, n, config)
-                observation = fuse_view(observation, view_depth, np.asarray(view.mask), view.intrinsics,
-                                        view.first_from_camera, config.min_depth, config.max_depth,
-                                        config.min_valid_points)
+                view_depth, view_mask = np.asarray(view.depth), np.asarray(view.mask)
+                self.check_input(view_depth, view_mask, view.intrinsics, n, config)
+                observation = fuse_view(observation, view_depth, view_mask, view.intrinsics, view.first_from_camera,
+                                        config.min_depth, config.max_depth, config.min_valid_points)
             except (PipelineInputError, ObservationError) as error:
                 raise PipelineInputError(f"view {number}: {error}") from error
         try:

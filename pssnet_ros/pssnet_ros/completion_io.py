@@ -18,6 +18,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from pssnet_core.geometry import CameraIntrinsics
 from pssnet_core.grasps import GripperConfig, gripper_segments
 from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineResult
 from pssnet_ros import conversions
@@ -127,15 +128,15 @@ def complete_messages(pipeline: CompletionPipeline, depth_msg: Image, mask_msg: 
         ValueError: a message cannot be converted or the pipeline refuses the input (the message says why).
         RunCancelled: ``should_stop`` (told the next step, see :meth:`CompletionPipeline.run`) returned True.
     """
-    depth = conversions.depth_to_metres(depth_msg, depth_scale)
-    mask = conversions.mask_to_numpy(mask_msg)
-    intrinsics = conversions.camera_info_to_intrinsics(info_msg)
+    def images(depth: Image, mask: Image, info: CameraInfo) -> tuple[np.ndarray, np.ndarray, CameraIntrinsics]:
+        return (conversions.depth_to_metres(depth, depth_scale), conversions.mask_to_numpy(mask),
+                conversions.camera_info_to_intrinsics(info))
+
+    depth, mask, intrinsics = images(depth_msg, mask_msg, info_msg)
     more = []
     for number, view in enumerate(more_views, start=2):
         try:
-            more.append(MoreView(conversions.depth_to_metres(view.depth, depth_scale),
-                                 conversions.mask_to_numpy(view.mask),
-                                 conversions.camera_info_to_intrinsics(view.camera_info),
+            more.append(MoreView(*images(view.depth, view.mask, view.camera_info),
                                  conversions.pose_to_matrix(view.camera_pose)))
         except ValueError as error:
             raise ValueError(f"view {number}: {error}") from error
