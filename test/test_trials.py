@@ -395,3 +395,21 @@ def test_a_second_look_comes_from_where_the_samples_disagree_and_sees_the_box(fa
     assert "look_azimuth_deg" not in kept["pssnet_second_look"].notes
     assert 0.0 < kept["pssnet_second_look"].notes["look_separability"] < LOOK_MIN_SEPARABILITY
     assert np.array_equal(kept["pssnet_second_look"].pose, kept["pssnet"].pose)
+
+
+def test_the_vae_looks_again_under_the_same_policy_from_its_own_samples(factory, strategist):
+    # With PSSNet in the VAE's place the VAE's strategies must repeat PSSNet's exactly: the same policy, the model's
+    # own samples deciding where to look and completing both views.
+    config = TrialsConfig()
+    model = strategist.pssnet
+    as_vae = Strategist(model, model, config.grasps, 4, config.physics, config.scenario.clutter_margin)
+    scene = factory.scene("box_slit", 0)
+    choices = as_vae.choose(scene, ("pssnet", "pssnet_second_look", "vae", "vae_second_look"), seed=0)
+    looked, vae_looked = choices["pssnet_second_look"], choices["vae_second_look"]
+    assert "look_azimuth_deg" in vae_looked.notes and vae_looked.notes == looked.notes
+    assert np.array_equal(vae_looked.pose, looked.pose) and vae_looked.score == looked.score
+    assert np.array_equal(choices["vae"].pose, choices["pssnet"].pose)
+    with pytest.raises(ValueError, match="need a VAE checkpoint"):
+        strategist.choose(scene, ("vae_second_look",), seed=0)
+    args = build_parser().parse_args(["grasp-trials", "--strategies", "vae_second_look"])
+    assert args.func(args) == 2  # no VAE checkpoint

@@ -17,11 +17,13 @@ SCENARIOS = ("mug_hidden_handle", "box_slit", "control")
 #: out-of-family generator (:mod:`pssnet_core.shapes.independent`)
 OBJECT_SOURCES = ("procedural", "independent")
 #: the grasp-choosing strategies (:mod:`pssnet_core.trials.strategies`)
-STRATEGIES = ("pssnet", "pssnet_confident", "pssnet_second_look", "vae", "one_completion", "one_completion_second_look",
-              "observed", "oracle", "plausible", "scene_posterior", "random")
+STRATEGIES = ("pssnet", "pssnet_confident", "pssnet_second_look", "vae", "vae_second_look", "one_completion",
+              "one_completion_second_look", "observed", "oracle", "plausible", "scene_posterior", "random")
 #: run only when asked for: yardsticks that plan on variants of the true object (hundreds voxelised per scene)
 REFERENCE_STRATEGIES = ("plausible", "scene_posterior")
 #: run only when asked for: strategies that see more than the one view the others share
-ACTIVE_STRATEGIES = ("pssnet_second_look", "one_completion_second_look")
+ACTIVE_STRATEGIES = ("pssnet_second_look", "one_completion_second_look", "vae_second_look")
+#: the strategies that need a VAE checkpoint
+VAE_STRATEGIES = ("vae", "vae_second_look")
 #: what a run compares unless told otherwise (the VAE too when a VAE checkpoint is given)
 DEFAULT_STRATEGIES = tuple(s for s in STRATEGIES if s not in (*REFERENCE_STRATEGIES, *ACTIVE_STRATEGIES, "vae"))

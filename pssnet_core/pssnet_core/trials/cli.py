@@ -9,7 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from pssnet_core.grasps.config import RANKINGS, GraspConfig
-from pssnet_core.trials import DEFAULT_STRATEGIES, HEADLESS_GL, OBJECT_SOURCES, SCENARIOS, STRATEGIES
+from pssnet_core.trials import DEFAULT_STRATEGIES, HEADLESS_GL, OBJECT_SOURCES, SCENARIOS, STRATEGIES, VAE_STRATEGIES
 
 
 def _names(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
@@ -80,8 +80,9 @@ def run_command(args: argparse.Namespace) -> int:
     try:
         if args.trials < 1 or args.num_samples < 1:
             raise ValueError("--trials and --num-samples must be >= 1")
-        if "vae" in config.strategies and args.vae_checkpoint is None:
-            raise ValueError("the vae strategy needs --vae-checkpoint (or leave it out of --strategies)")
+        if set(VAE_STRATEGIES) & set(config.strategies) and args.vae_checkpoint is None:
+            raise ValueError(f"the strategies {', '.join(VAE_STRATEGIES)} need --vae-checkpoint (or leave them out of "
+                             "--strategies)")
         pssnet = Completer.from_checkpoint(args.pssnet_checkpoint, threads=args.threads)
         vae = Completer.from_checkpoint(args.vae_checkpoint, threads=args.threads) if args.vae_checkpoint else None
         strategist = Strategist(pssnet, vae, config.grasps, config.num_samples, config.physics,

@@ -21,6 +21,9 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
 - ``one_completion_second_look``: the same look (where PSSNet's samples say, when they say so), then PSSNet's
   posterior mean of both views fused, one shape: what the samples add once the robot has looked;
 - ``vae``: the VAE's samples, scored the same way;
+- ``vae_second_look``: ``pssnet_second_look`` with the VAE in PSSNet's place: the VAE's own samples of the first
+  view decide whether and from where to look, the VAE completes both views (the active strategies compared under
+  one policy);
 - ``one_completion``: PSSNet's posterior mean alone (``decode(mu) > 0.5``), one shape;
 - ``observed``: the observed voxels alone (the known-occupied grid);
 - ``oracle``: the true shape in the same grid (an upper bound: the planner's own limits remain);
@@ -46,7 +49,7 @@ from pssnet_core.grasps import GraspConfig, GraspSet, plan_grasps
 from pssnet_core.inference import Completer
 from pssnet_core.next_view import NextViewConfig, rank_views, scaled_intrinsics
 from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineConfig, PipelineInputError, PipelineResult
-from pssnet_core.trials import ACTIVE_STRATEGIES, STRATEGIES
+from pssnet_core.trials import STRATEGIES, VAE_STRATEGIES
 from pssnet_core.trials.physics import PhysicsConfig
 from pssnet_core.trials.plausible import PlausibleVariantsConfig, VariantJudge, plausible_shapes, posterior_shapes
 from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter, clutter_depth, look_cameras, render_look
@@ -146,9 +149,9 @@ class Strategist:
         return Choice(name, camera_pose @ grasps.poses[index], float(grasps.widths[index]),
                       float(grasps.scores[index]), str(grasps.kinds[index]), len(grasps))
 
-    def _second_look(self, scene: TrialScene, result: PipelineResult, seed: int) -> SecondLook:
-        """Where PSSNet's samples of the first view say to look from, and both views completed (no look when no place
-        tells two samples apart with probability >= :data:`LOOK_MIN_SEPARABILITY`)."""
+    def _second_look(self, model: str, scene: TrialScene, result: PipelineResult, seed: int) -> SecondLook:
+        """Where ``model``'s samples of the first view (``result``) say to look from, and both views completed by it
+        (no look when no place tells two samples apart with probability >= :data:`LOOK_MIN_SEPARABILITY`)."""
         camera = scene.view.camera_pose
         cameras = look_cameras(scene)
         config = NextViewConfig(delta=self.sampler_config.delta)
@@ -160,11 +163,11 @@ class Strategist:
             if scores[pick] < LOOK_MIN_SEPARABILITY:
                 break
             look, view = cameras[pick], render_look(scene, cameras[pick].pose)
-            if view is None or int(view.mask.sum()) < self.pipelines["pssnet"].config.min_mask_pixels:
+            if view is None or int(view.mask.sum()) < self.pipelines[model].config.min_mask_pixels:
                 continue
             more = MoreView(view.depth, view.mask, view.intrinsics, np.linalg.inv(camera) @ look.pose)
             try:
-                both = self._complete("pssnet", scene, seed, (more,))
+                both = self._complete(model, scene, seed, (more,))
             except PipelineInputError:  # too little of the object in that view: the next best place
                 continue
             notes = {"look_azimuth_deg": look.azimuth_deg, "look_elevation_deg": look.elevation_deg,
@@ -177,8 +180,8 @@ class Strategist:
         unknown = set(strategies) - set(STRATEGIES)
         if unknown:
             raise ValueError(f"unknown strategies {sorted(unknown)}; expected some of {STRATEGIES}")
-        if "vae" in strategies and "vae" not in self.pipelines:
-            raise ValueError("the vae strategy needs a VAE checkpoint")
+        if set(VAE_STRATEGIES) & set(strategies) and "vae" not in self.pipelines:
+            raise ValueError(f"the strategies {', '.join(VAE_STRATEGIES)} need a VAE checkpoint")
         camera = scene.view.camera_pose
         result = self._complete("pssnet", scene, seed)
         observation = result.observation
@@ -186,20 +189,30 @@ class Strategist:
         pssnet_grasps = None
         if {"pssnet", "pssnet_confident", "pssnet_second_look", "random"} & set(strategies):
             pssnet_grasps = self._plan(result.occupancy, result, scene, seed, result.weights)
-        look = self._second_look(scene, result, seed) if set(ACTIVE_STRATEGIES) & set(strategies) else None
+        look = None
+        if {"pssnet_second_look", "one_completion_second_look"} & set(strategies):
+            look = self._second_look("pssnet", scene, result, seed)
+        vae = vae_grasps = None
+        if set(VAE_STRATEGIES) & set(strategies):
+            vae = self._complete("vae", scene, seed)
+            vae_grasps = self._plan(vae.occupancy, vae, scene, seed, vae.weights)
         for name in strategies:
             if name == "pssnet":
                 choices[name] = self._choice(name, pssnet_grasps, 0, camera)
             elif name == "pssnet_confident":
                 choices[name] = self._choice(name, pssnet_grasps, pssnet_grasps.confident_choice(), camera)
-            elif name == "pssnet_second_look":
-                first_score = round(float(pssnet_grasps.scores[0]) if len(pssnet_grasps) else 0.0, 3)
-                if look.result is None:
-                    choice = self._choice(name, pssnet_grasps, 0, camera)
+            elif name in ("pssnet_second_look", "vae_second_look"):
+                if name == "pssnet_second_look":
+                    first_grasps, model_look = pssnet_grasps, look
                 else:
-                    both = look.result
+                    first_grasps, model_look = vae_grasps, self._second_look("vae", scene, vae, seed)
+                first_score = round(float(first_grasps.scores[0]) if len(first_grasps) else 0.0, 3)
+                if model_look.result is None:
+                    choice = self._choice(name, first_grasps, 0, camera)
+                else:
+                    both = model_look.result
                     choice = self._choice(name, self._plan(both.occupancy, both, scene, seed, both.weights), 0, camera)
-                choices[name] = replace(choice, notes={**look.notes, "first_score": first_score})
+                choices[name] = replace(choice, notes={**model_look.notes, "first_score": first_score})
             elif name == "one_completion_second_look":
                 seen = look.result if look.result is not None else result
                 choice = self._choice(name, self._plan(posterior_mean(self.pssnet, seen), seen, scene, seed), 0, camera)
@@ -222,8 +235,7 @@ class Strategist:
                 choices[name] = self._choice(name, self._plan(shapes.occupancy, result, scene, seed, shapes.weights),
                                              0, camera)
             elif name == "vae":
-                vae = self._complete("vae", scene, seed)
-                choices[name] = self._choice(name, self._plan(vae.occupancy, vae, scene, seed, vae.weights), 0, camera)
+                choices[name] = self._choice(name, vae_grasps, 0, camera)
             else:
                 shapes = {"one_completion": lambda: posterior_mean(self.pssnet, result),
                           "observed": lambda: observation.known_occupied[None],
