@@ -296,6 +296,9 @@ def test_the_command_is_registered_with_its_options(tmp_path, capsys):
     tuned = TrialsConfig(sampler_options=tuple(options))
     assert tuned.fingerprint()["sampler_options"] == options
     assert "sampler_options" not in TrialsConfig().fingerprint()
+    assert "look_threshold" not in TrialsConfig().fingerprint()
+    assert TrialsConfig(look_threshold=0.2).fingerprint()["look_threshold"] == 0.2
+    assert build_parser().parse_args(["grasp-trials", "--look-threshold", "0.2"]).look_threshold == 0.2
     bad = build_parser().parse_args(["grasp-trials", "--strategies", "oracle", "--sampler-option", "shares=1",
                                      "--out", str(tmp_path)])
     assert bad.func(bad) == 2 and "sampler option 'shares=1'" in capsys.readouterr().err
@@ -395,6 +398,15 @@ def test_a_second_look_comes_from_where_the_samples_disagree_and_sees_the_box(fa
     assert "look_azimuth_deg" not in kept["pssnet_second_look"].notes
     assert 0.0 < kept["pssnet_second_look"].notes["look_separability"] < LOOK_MIN_SEPARABILITY
     assert np.array_equal(kept["pssnet_second_look"].pose, kept["pssnet"].pose)
+    # A robot that looks whenever some place tells two samples apart at all does look there.
+    config = TrialsConfig()
+    eager = Strategist(strategist.pssnet, None, config.grasps, 4, config.physics, config.scenario.clutter_margin,
+                       look_threshold=0.0)
+    looked = eager.choose(unsure, ("pssnet_second_look",), seed=0)["pssnet_second_look"]
+    assert looked.notes["look_separability"] == kept["pssnet_second_look"].notes["look_separability"]
+    assert "look_azimuth_deg" in looked.notes
+    with pytest.raises(ValueError, match="look_threshold"):
+        Strategist(strategist.pssnet, None, config.grasps, 4, config.physics, 0.01, look_threshold=1.5)
 
 
 def test_the_vae_looks_again_under_the_same_policy_from_its_own_samples(factory, strategist):

@@ -23,6 +23,8 @@ STRATEGIES = ("pssnet", "pssnet_confident", "pssnet_second_look", "vae", "vae_se
 REFERENCE_STRATEGIES = ("plausible", "scene_posterior")
 #: run only when asked for: strategies that see more than the one view the others share
 ACTIVE_STRATEGIES = ("pssnet_second_look", "one_completion_second_look", "vae_second_look")
+#: by default the second look's strategies look again when some place tells two samples apart at least this likely
+LOOK_MIN_SEPARABILITY = 0.5
 #: the strategies that need a VAE checkpoint
 VAE_STRATEGIES = ("vae", "vae_second_look")
 #: what a run compares unless told otherwise (the VAE too when a VAE checkpoint is given)

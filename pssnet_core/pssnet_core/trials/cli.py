@@ -9,7 +9,15 @@ from dataclasses import replace
 from pathlib import Path
 
 from pssnet_core.grasps.config import RANKINGS, GraspConfig
-from pssnet_core.trials import DEFAULT_STRATEGIES, HEADLESS_GL, OBJECT_SOURCES, SCENARIOS, STRATEGIES, VAE_STRATEGIES
+from pssnet_core.trials import (
+    DEFAULT_STRATEGIES,
+    HEADLESS_GL,
+    LOOK_MIN_SEPARABILITY,
+    OBJECT_SOURCES,
+    SCENARIOS,
+    STRATEGIES,
+    VAE_STRATEGIES,
+)
 
 
 def _names(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
@@ -44,6 +52,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--sampler-option", action="append", default=[], metavar="NAME=VALUE",
                    help="set one of the checked sampler's parameters (pssnet_core.sampling.CheckedSamplerConfig, "
                         "e.g. turned_rest_low=0.75); repeat for more")
+    p.add_argument("--look-threshold", type=float, default=LOOK_MIN_SEPARABILITY, metavar="P",
+                   help="the second look's strategies look again when some place tells two samples apart with at "
+                        "least this probability (default %(default)s)")
     p.add_argument("--rank-by", choices=RANKINGS, default=GraspConfig.rank_by,
                    help="how the planner ranks grasps (GraspConfig.rank_by; default %(default)s)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
@@ -72,6 +83,7 @@ def run_command(args: argparse.Namespace) -> int:
     config = TrialsConfig(scenarios=args.scenarios, strategies=chosen_strategies(args), trials=args.trials,
                           seed=args.seed, num_samples=args.num_samples, sampler=args.sampler,
                           sampler_options=tuple(args.sampler_option),
+                          look_threshold=args.look_threshold,
                           filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
     config = replace(config, scenario=replace(config.scenario, objects=args.objects),
                      grasps=replace(config.grasps, rank_by=args.rank_by))
@@ -86,7 +98,8 @@ def run_command(args: argparse.Namespace) -> int:
         pssnet = Completer.from_checkpoint(args.pssnet_checkpoint, threads=args.threads)
         vae = Completer.from_checkpoint(args.vae_checkpoint, threads=args.threads) if args.vae_checkpoint else None
         strategist = Strategist(pssnet, vae, config.grasps, config.num_samples, config.physics,
-                                config.scenario.clutter_margin, config.sampler, config.sampler_options)
+                                config.scenario.clutter_margin, config.sampler, config.sampler_options,
+                                config.look_threshold)
         records = run_trials(config, strategist, args.out, progress=not args.no_progress)
     except (CheckpointError, ValueError, OSError) as error:
         print(f"pssnet grasp-trials: error: {error}", file=sys.stderr)

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from pssnet_core.grasps import GraspConfig
-from pssnet_core.trials import DEFAULT_STRATEGIES, SCENARIOS
+from pssnet_core.trials import DEFAULT_STRATEGIES, LOOK_MIN_SEPARABILITY, SCENARIOS
 from pssnet_core.trials.collision import Faithfulness
 from pssnet_core.trials.physics import OUTCOMES, PhysicsConfig, PhysicsScene, TrialOutcome, build_model, run_trial
 from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory
@@ -41,6 +41,8 @@ class TrialsConfig:
         sampler: how PSSNet and the VAE draw them (the pipeline's ``sampler``; the node's default: checked).
         sampler_options: ``NAME=VALUE`` settings of the checked sampler's other parameters (the pipeline's
             ``sampler_options``; none = the node's).
+        look_threshold: the second look's strategies look again when some place tells two samples apart with at
+            least this probability.
         filmstrip_scenes: scenes per scenario drawn in the filmstrip (the first ones).
         grasps: grasp candidate and scoring options: the node's defaults, but 10 raw (anchor, orientation)
             pairs per kept candidate instead of 3 (the clutter filter drops most of them: in the cupboard ~95 %)
@@ -58,6 +60,7 @@ class TrialsConfig:
     num_samples: int = 20
     sampler: str = "checked"
     sampler_options: tuple[str, ...] = ()
+    look_threshold: float = LOOK_MIN_SEPARABILITY
     filmstrip_scenes: int = 2
     grasps: GraspConfig = field(default_factory=lambda: GraspConfig(oversample=10.0, plane_clearance=0.003))
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
@@ -72,6 +75,8 @@ class TrialsConfig:
         data["scenario"].pop("cache_dir")
         if not data["sampler_options"]:  # the node's sampler: as runs made before the option existed recorded it
             data.pop("sampler_options")
+        if data["look_threshold"] == LOOK_MIN_SEPARABILITY:  # likewise for runs made before the threshold was set
+            data.pop("look_threshold")
         return json.loads(json.dumps(data, default=str))
 
 

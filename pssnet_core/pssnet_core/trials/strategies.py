@@ -13,7 +13,7 @@ takes the best-ranked grasp unless that holds for none of its shapes (then it ha
   grip among those holding for >= 90 % of the samples' weight, else no grasp);
 - ``pssnet_second_look``: the robot looks again before it grasps when a place round the object
   (:func:`~pssnet_core.trials.scenarios.look_cameras`) would tell two of its samples apart with probability >=
-  :data:`LOOK_MIN_SEPARABILITY` (:mod:`pssnet_core.next_view`, the known clutter in front): from the place that
+  ``look_threshold`` (:mod:`pssnet_core.next_view`, the known clutter in front): from the place that
   tells them apart best, it completes both views fused (``CompletionPipeline.run(more_views=...)``) and takes the
   best-ranked grasp on those samples; else PSSNet's grasp. The only strategy that sees more than one view. (Looking
   only when no grasp held for >= 90 % of the samples was tried first: the samples' agreement on a grasp proved a
@@ -49,13 +49,10 @@ from pssnet_core.grasps import GraspConfig, GraspSet, plan_grasps
 from pssnet_core.inference import Completer
 from pssnet_core.next_view import NextViewConfig, rank_views, scaled_intrinsics
 from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineConfig, PipelineInputError, PipelineResult
-from pssnet_core.trials import STRATEGIES, VAE_STRATEGIES
+from pssnet_core.trials import LOOK_MIN_SEPARABILITY, STRATEGIES, VAE_STRATEGIES
 from pssnet_core.trials.physics import PhysicsConfig
 from pssnet_core.trials.plausible import PlausibleVariantsConfig, VariantJudge, plausible_shapes, posterior_shapes
 from pssnet_core.trials.scenarios import TrialScene, allowed_by_clutter, clutter_depth, look_cameras, render_look
-
-#: ``pssnet_second_look`` looks again when some place tells two of its samples apart at least this likely
-LOOK_MIN_SEPARABILITY = 0.5
 
 
 @dataclass
@@ -109,11 +106,16 @@ class Strategist:
         sampler_options: the checked sampler's other settings (``PipelineConfig.sampler_options``).
         physics: for the pre-grasp distance the clutter filter checks.
         clutter_margin: clearance the planner keeps from the clutter (m).
+        look_threshold: the second look's strategies look again when some place tells two samples apart with at
+            least this probability (and above 0).
     """
 
     def __init__(self, pssnet: Completer, vae: Completer | None, grasps: GraspConfig, num_samples: int,
                  physics: PhysicsConfig, clutter_margin: float, sampler: str = "checked",
-                 sampler_options: tuple[str, ...] = ()) -> None:
+                 sampler_options: tuple[str, ...] = (), look_threshold: float = LOOK_MIN_SEPARABILITY) -> None:
+        if not 0.0 <= look_threshold <= 1.0:
+            raise ValueError(f"look_threshold must lie in [0, 1], got {look_threshold}")
+        self.look_threshold = look_threshold
         config = PipelineConfig(num_samples=num_samples, grasps=grasps, sampler=sampler,
                                 sampler_options=tuple(sampler_options))
         self.pipelines = {"pssnet": CompletionPipeline(pssnet, config)}
@@ -151,7 +153,7 @@ class Strategist:
 
     def _second_look(self, model: str, scene: TrialScene, result: PipelineResult, seed: int) -> SecondLook:
         """Where ``model``'s samples of the first view (``result``) say to look from, and both views completed by it
-        (no look when no place tells two samples apart with probability >= :data:`LOOK_MIN_SEPARABILITY`)."""
+        (no look when no place tells two samples apart with probability >= ``look_threshold``)."""
         camera = scene.view.camera_pose
         cameras = look_cameras(scene)
         config = NextViewConfig(delta=self.sampler_config.delta)
@@ -160,7 +162,7 @@ class Strategist:
                             [np.linalg.inv(c.pose) @ camera for c in cameras], scene.view.intrinsics,
                             [clutter_depth(scene.physics.clutter, c.pose, small) for c in cameras], config)
         for pick in np.argsort(-scores, kind="stable"):
-            if scores[pick] < LOOK_MIN_SEPARABILITY:
+            if scores[pick] < self.look_threshold or scores[pick] <= 0.0:
                 break
             look, view = cameras[pick], render_look(scene, cameras[pick].pose)
             if view is None or int(view.mask.sum()) < self.pipelines[model].config.min_mask_pixels:
