@@ -27,6 +27,8 @@ from pssnet_core.grasps import (
     score_grasps,
     single_completion_choice,
 )
+from pssnet_core.grasps.config import VoxelDims
+from pssnet_core.grasps.scoring import observed_point_hits
 
 N = 32
 VOXEL = 0.00625  # 0.2 m grid: the default gripper opens 12.8 voxels
@@ -542,3 +544,38 @@ def test_the_share_of_the_weight_held_is_half_the_tie_break():
     _, actual = holds_and_secondary(checks, candidates, CONFIG, VOXEL)
     assert with_full[0] - with_none[0] == pytest.approx(0.5)
     assert actual[0] == pytest.approx(with_none[0] + 0.5 * checks.resistance[0, 0])
+
+
+def test_observed_points_inside_a_finger_or_the_palm_are_found():
+    width = 5.0 + 2 * CLEAR
+    grasp = top_grasp(12.5, 16.0, 12.5, width)  # fingers from z = 12.5 (tips) up to 12.5 + FL, closing along x
+    dims = VoxelDims.of(CONFIG, VOXEL)
+    points = np.array([[12.5 + width / 2 + FT / 2, 16.0, 12.5 + FL / 2],  # in the +x finger
+                       [12.5, 16.0, 13.0],  # between the fingers: what they close on
+                       [12.5 + width / 2 + FT / 2, 16.0, 12.0],  # past the fingertips
+                       [12.5, 16.0, 12.5 + FL + 1.0]])  # above the fingers' root: in the palm
+    hits = [observed_point_hits(grasp, points[i:i + 1], dims) for i in range(4)]
+    assert [(bool(f[0]), bool(p[0])) for f, p in hits] == [(True, False), (False, False), (False, False),
+                                                            (False, True)]
+    assert observed_point_hits(grasp, points, dims, which=np.zeros(1, bool))[0].tolist() == [False]
+
+
+def test_with_the_observed_points_check_no_finger_lands_on_surface_the_camera_saw():
+    # Every completion is 5 voxels thick along x, but the camera saw surface 3.5 voxels beyond its +x face (the
+    # completions are too thin there): some grasps that hold for every completion put a finger or the palm on it.
+    pose = identity_pose()
+    y, z = np.meshgrid(np.arange(8.25, 24.0, 0.5), np.arange(2.25, 20.0, 0.5), indexing="ij")
+    seen = np.stack([np.full(y.size, 18.5), y.ravel(), z.ravel()], axis=1)
+    points = pose.grid_to_camera(seen)
+    dims = VoxelDims.of(CONFIG, VOXEL)
+    for check in (False, True):
+        grasps = plan_grasps(bar(), pose, points, dataclasses.replace(CONFIG, observed_points_check=check),
+                             support_z=2.0)
+        held = grasps.scores > 0
+        finger, palm = observed_point_hits(grasps.grid, seen, dims)
+        if check:
+            assert held.any() and not np.any((finger | palm) & held)
+        else:
+            assert np.any((finger | palm) & held)  # without it some grasps that hold sit in the seen surface
+    with pytest.raises(GraspError, match="observed_points_check"):
+        GraspConfig(observed_points_check="yes")

@@ -8,11 +8,17 @@ import numpy as np
 
 from pssnet_core.geometry import GridPose
 from pssnet_core.grasps.candidates import candidates_from_packed
-from pssnet_core.grasps.config import GraspConfig, GraspError
+from pssnet_core.grasps.config import GraspConfig, GraspError, VoxelDims
 from pssnet_core.grasps.inputs import check_occupancy, check_points, check_weights, support_height_of
 from pssnet_core.grasps.lattice import PackedGrids
 from pssnet_core.grasps.results import KIND_NAMES, GraspCandidates, GraspSet, SingleCompletionChoice
-from pssnet_core.grasps.scoring import checks_from_packed, expected_grip, holds_and_secondary, score_grasps
+from pssnet_core.grasps.scoring import (
+    checks_from_packed,
+    expected_grip,
+    holds_and_secondary,
+    observed_point_hits,
+    score_grasps,
+)
 
 
 def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
@@ -71,6 +77,12 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
     bits = PackedGrids(occupancy)
     candidates = candidates_from_packed(bits, occupancy.any(axis=0), pose, points, config, support_z, allowed)
     checks = checks_from_packed(candidates, bits, pose, support_z, config)
+    if config.observed_points_check and points is not None and len(points):
+        # Surface the camera saw is part of every plausible shape: a finger or the palm in it hits each completion.
+        finger, palm = observed_point_hits(candidates, pose.camera_to_grid(points),
+                                           VoxelDims.of(config, pose.voxel_size), checks.holds.any(axis=1))
+        checks.finger_hit[finger] = True
+        checks.palm_hit[palm] = True
     holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
     grip = expected_grip(checks, weights) if config.rank_by == "expected_grip" else None
     return _to_grasp_set(candidates, holds, secondary, pose, support_z, weights, grip)

@@ -57,6 +57,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "least this probability (default %(default)s)")
     p.add_argument("--rank-by", choices=RANKINGS, default=GraspConfig.rank_by,
                    help="how the planner ranks grasps (GraspConfig.rank_by; default %(default)s)")
+    p.add_argument("--observed-points-check", action="store_true",
+                   help="no grasp with an observed point inside a finger or the palm (GraspConfig."
+                        "observed_points_check; off by default)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
     p.add_argument("--out", type=Path, default=Path("results/grasp_trials"), help="output directory")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -86,7 +89,8 @@ def run_command(args: argparse.Namespace) -> int:
                           look_threshold=args.look_threshold,
                           filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
     config = replace(config, scenario=replace(config.scenario, objects=args.objects),
-                     grasps=replace(config.grasps, rank_by=args.rank_by))
+                     grasps=replace(config.grasps, rank_by=args.rank_by,
+                                    observed_points_check=args.observed_points_check))
     if args.cache_dir is not None:
         config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
     try:
