@@ -9,21 +9,10 @@ against the first, scene by scene, with the exact sign test of the scenes only o
 from __future__ import annotations
 
 import argparse
-import gzip
-import json
 from dataclasses import replace
 from pathlib import Path
 
-from pssnet_core.trials.run import TrialRecord, paired_lines, read_records, summarise
-
-
-def records_of(directory: Path) -> list[TrialRecord]:
-    """A run's records: its records.jsonl, or records.jsonl.gz as committed under results/."""
-    packed = directory / "records.jsonl.gz"
-    if not (directory / "records.jsonl").is_file() and packed.is_file():
-        with gzip.open(packed, "rt") as lines:
-            return [TrialRecord(**json.loads(line)) for line in lines if line.strip()]
-    return read_records(directory / "records.jsonl")
+from pssnet_core.trials.run import paired_lines, read_run_records, summarise
 
 
 def main() -> None:
@@ -35,7 +24,7 @@ def main() -> None:
     for spec in args.runs:
         directory, _, strategy = spec.rpartition(":")
         label = f"{strategy} ({directory})"
-        chosen = [replace(r, strategy=label) for r in records_of(Path(directory)) if r.strategy == strategy]
+        chosen = [replace(r, strategy=label) for r in read_run_records(Path(directory)) if r.strategy == strategy]
         if label in labels:
             parser.error(f"{spec} is given twice")
         if not chosen:

@@ -13,6 +13,7 @@ from pssnet_core.trials import HEADLESS_GL
 
 os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo's first import (physics, below): the short run's frames
 
+import gzip
 import json
 from dataclasses import replace
 
@@ -41,7 +42,14 @@ from pssnet_core.trials.plausible import (
     spread_choice,
     within_yaw_range,
 )
-from pssnet_core.trials.run import TrialRecord, TrialsConfig, paired_lines, run_trials, wilson_interval
+from pssnet_core.trials.run import (
+    TrialRecord,
+    TrialsConfig,
+    paired_lines,
+    read_run_records,
+    run_trials,
+    wilson_interval,
+)
 from pssnet_core.trials.scenarios import (
     ScenarioConfig,
     ScenarioError,
@@ -251,6 +259,11 @@ def test_a_short_run_writes_records_summary_and_filmstrip_and_resumes(factory, s
     # Run again: nothing new to do, the records stay as they were.
     assert len(run_trials(config, strategist, tmp_path, progress=False)) == len(records)
     assert len((tmp_path / "records.jsonl").read_text().splitlines()) == len(records)
+    # A run committed gzipped (results/) reads back the same.
+    packed = tmp_path / "packed"
+    packed.mkdir()
+    (packed / "records.jsonl.gz").write_bytes(gzip.compress((tmp_path / "records.jsonl").read_bytes()))
+    assert read_run_records(packed) == read_run_records(tmp_path) == records
     with pytest.raises(ValueError, match="other settings"):
         run_trials(replace(config, seed=1), strategist, tmp_path, progress=False)
 

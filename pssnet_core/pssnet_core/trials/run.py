@@ -7,6 +7,7 @@ as it is done; a run started again with the same settings skips the (scene, stra
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import sys
@@ -299,6 +300,15 @@ def read_records(path: Path) -> list[TrialRecord]:
     if not path.is_file():
         return []
     return [TrialRecord(**json.loads(line)) for line in path.read_text().splitlines() if line.strip()]
+
+
+def read_run_records(directory: Path) -> list[TrialRecord]:
+    """A run directory's records: its records.jsonl, or records.jsonl.gz as committed under results/."""
+    packed = directory / "records.jsonl.gz"
+    if not (directory / "records.jsonl").is_file() and packed.is_file():
+        with gzip.open(packed, "rt") as lines:
+            return [TrialRecord(**json.loads(line)) for line in lines if line.strip()]
+    return read_records(directory / "records.jsonl")
 
 
 def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress: bool = True) -> list[TrialRecord]:

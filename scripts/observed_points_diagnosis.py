@@ -1,0 +1,86 @@
+"""Do the second look's grasps that fail put a finger or the palm where a camera saw surface?
+
+For the failed scenes of a ``pssnet_second_look`` trial run (and its first lifted ones), the strategy's choice is
+made again (deterministic: the run's scene seeds), and the observed points of both views and the true object's
+surface are counted inside the chosen grasp's fingers and palm at the grasp and along the approach
+(``PhysicsConfig.pre_grasp`` back along it). Results in ``results/second_look/README.md``::
+
+    .venv/bin/python scripts/observed_points_diagnosis.py results/second_look/box --seed 0 [--successes 25]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from pssnet_core.trials import HEADLESS_GL
+
+os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
+
+from pssnet_core.grasps import GripperConfig  # noqa: E402
+from pssnet_core.inference import Completer  # noqa: E402
+from pssnet_core.trials.run import TrialsConfig, read_run_records  # noqa: E402
+from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
+from pssnet_core.trials.strategies import Strategist  # noqa: E402
+
+STRATEGY = "pssnet_second_look"
+
+
+def inside_gripper(points: np.ndarray, width: float, gripper: GripperConfig, back: float) -> tuple[int, int]:
+    """Points (gripper frame, metres) inside a finger and inside the palm, swept ``back`` along the approach."""
+    x, y, z = points.T
+    across = np.abs(x) <= gripper.finger_width / 2
+    finger = across & (np.abs(y) > width / 2) & (np.abs(y) <= width / 2 + gripper.finger_thickness)
+    finger &= (z >= -gripper.finger_length - back) & (z <= 0.0)
+    palm = across & (np.abs(y) <= gripper.max_opening / 2 + gripper.finger_thickness)
+    palm &= (z >= -gripper.finger_length - gripper.palm_depth - back) & (z < -gripper.finger_length)
+    return int(finger.sum()), int(palm.sum())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="a grasp-trials output directory with pssnet_second_look records")
+    parser.add_argument("--seed", type=int, default=0, help="the run's --seed")
+    parser.add_argument("--successes", type=int, default=25, help="lifted scenes to compare with")
+    args = parser.parse_args()
+    records = {r.index: r for r in read_run_records(args.run) if r.strategy == STRATEGY}
+    failed = sorted(i for i, r in records.items() if not r.success)
+    lifted = sorted(i for i, r in records.items() if r.success)[:args.successes]
+    config = TrialsConfig(seed=args.seed)
+    factory = SceneFactory(config.scenario)
+    strategist = Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, config.num_samples,
+                            config.physics, config.scenario.clutter_margin)
+    gripper = config.grasps.gripper
+    with_points = {"failed": 0, "lifted": 0}
+    for label, indices in (("failed", failed), ("lifted", lifted)):
+        for index in indices:
+            scene = factory.scene(records[index].scenario, index, args.seed)
+            seed = int(np.random.default_rng([args.seed, index]).integers(2**31 - 1))
+            first = strategist._complete("pssnet", scene, seed)
+            look = strategist._second_look("pssnet", scene, first, seed)
+            choice = strategist.choose(scene, (STRATEGY,), seed)[STRATEGY]
+            if choice.pose is None:
+                continue
+            gripper_from_world = np.linalg.inv(choice.pose)
+            camera = scene.view.camera_pose
+            seen = (look.result or first).observation.points @ camera[:3, :3].T + camera[:3, 3]
+            mesh = scene.physics.shape.mesh.copy()
+            mesh.apply_transform(scene.physics.object_pose)
+            true = trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]
+            rotation, translation = gripper_from_world[:3, :3], gripper_from_world[:3, 3]
+            seen_in = inside_gripper(seen @ rotation.T + translation, choice.width, gripper, config.physics.pre_grasp)
+            true_in = inside_gripper(true @ rotation.T + translation, choice.width, gripper, config.physics.pre_grasp)
+            with_points[label] += int(sum(seen_in) > 0)
+            print(f"{label} scene {index}: {records[index].outcome}, {choice.kind} grasp scored {choice.score:.2f}, "
+                  f"{choice.width * 1000:.1f} mm | observed points in finger / palm {seen_in[0]} / {seen_in[1]} | "
+                  f"true surface {true_in[0]} / {true_in[1]}", flush=True)
+    print(f"with observed points inside: {with_points['failed']} of {len(failed)} failed, "
+          f"{with_points['lifted']} of {len(lifted)} lifted")
+
+
+if __name__ == "__main__":
+    main()
