@@ -229,6 +229,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("grasp_holds_axial_load", "gripper: the fingers hold a load along the closing axis (a stiff, "
               "non-backdrivable drive); false = force-controlled fingers that follow it",
               field="grasps.gripper.holds_axial_load"),
+    ParamSpec("grasp_observed_points_check", "no grasp with an observed point (at the camera's resolution) inside a "
+              "finger or the palm; the completions' voxels alone can leave a finger room where the camera saw "
+              "surface", field="grasps.observed_points_check"),
     ParamSpec("grasp_friction", "friction coefficient between finger pads and object (for the weight check)", 0.05,
               2.0, field="grasps.friction"),
     ParamSpec("grasp_object_density", "density assumed for every completion when the weight check turns volume "
