@@ -146,7 +146,7 @@ def test_every_pipeline_parameter_names_a_config_field_with_its_default():
                "up_check_deg": 10.0, "grasp_side_rolls": [0.0, 45.0, 90.0], "grasp_tilted_pitches": [30.0, 60.0],
                "grasp_shallow_depths": [], "grasp_thin_anchor_bias": 2.0, "grasp_rank_by": "fraction",
                "grasp_grip_force": 40.0, "grasp_holds_axial_load": True, "grasp_friction": 0.8,
-               "grasp_object_density": 400.0, "grasp_observed_points_check": True}
+               "grasp_object_density": 400.0, "grasp_observed_points_check": False}
     assert set(changed) == {s.name for s in PARAMETERS if s.field}
     config = pipeline_config({**values, **changed})
     for name, value in changed.items():

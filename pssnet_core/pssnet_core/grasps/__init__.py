@@ -30,7 +30,7 @@ for completion s when
      normal, the sum over the pad's touching cells of the gradient of the completion smoothed by one voxel. A pinch
      of a body's chord or of a box across its edges fails it (the pads push the object out of the hand, or turn
      it); handles, rims and wires, too thin for their voxel normals to mean anything, are not judged by it.
-  6. in :func:`plan_grasps`, with ``GraspConfig.observed_points_check`` (off by default): no observed point (at the
+  6. in :func:`plan_grasps`, with ``GraspConfig.observed_points_check`` (on by default): no observed point (at the
      camera's resolution) lies inside a finger or the palm. Surface the camera saw is part of every completion,
      and the voxels alone can leave a finger room in the few millimetres where it was seen.
 Volumes are tested on lattices of sample points (spacing at most one voxel along every axis, faces

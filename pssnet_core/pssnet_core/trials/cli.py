@@ -57,9 +57,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "least this probability (default %(default)s)")
     p.add_argument("--rank-by", choices=RANKINGS, default=GraspConfig.rank_by,
                    help="how the planner ranks grasps (GraspConfig.rank_by; default %(default)s)")
-    p.add_argument("--observed-points-check", action="store_true",
+    p.add_argument("--observed-points-check", action=argparse.BooleanOptionalAction,
+                   default=GraspConfig.observed_points_check,
                    help="no grasp with an observed point inside a finger or the palm (GraspConfig."
-                        "observed_points_check; off by default)")
+                        "observed_points_check; default %(default)s)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
     p.add_argument("--out", type=Path, default=Path("results/grasp_trials"), help="output directory")
     p.add_argument("--cache-dir", type=Path, default=None,
