@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +51,9 @@ def main() -> None:
     records = {r.index: r for r in read_run_records(args.run) if r.strategy == STRATEGY}
     failed = sorted(i for i, r in records.items() if not r.success)
     lifted = sorted(i for i, r in records.items() if r.success)[:args.successes]
+    # the planner as the diagnosed runs had it: before the observed-points check (which this diagnosis led to)
     config = TrialsConfig(seed=args.seed)
+    config = replace(config, grasps=replace(config.grasps, observed_points_check=False))
     factory = SceneFactory(config.scenario)
     strategist = Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, config.num_samples,
                             config.physics, config.scenario.clutter_margin)
