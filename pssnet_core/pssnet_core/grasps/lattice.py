@@ -221,17 +221,24 @@ def voxel_box_rows(grid: np.ndarray, voxels: np.ndarray, rotations: np.ndarray, 
     return out
 
 
+def gripper_part_boxes(widths: np.ndarray, dims: VoxelDims) -> tuple[np.ndarray, np.ndarray]:
+    """The gripper's parts as boxes in its own frame (voxels): (K, 3, 3) centres and (K, 3, 3) half extents of
+    the finger at -y, the finger at +y (open to ``widths``) and the palm, in that order."""
+    k = len(widths)
+    fl, fw, ft = dims.finger_length, dims.finger_width, dims.finger_thickness
+    centres = np.zeros((k, 3, 3))
+    centres[:, 0, 1], centres[:, 1, 1] = -(widths / 2 + ft / 2), widths / 2 + ft / 2
+    centres[:, :2, 2] = -fl / 2
+    centres[:, 2, 2] = -fl - dims.palm_depth / 2
+    halves = np.empty((k, 3, 3))
+    halves[:, :2] = [fw / 2, ft / 2, fl / 2]
+    halves[:, 2] = [fw / 2, dims.max_opening / 2 + ft, dims.palm_depth / 2]
+    return centres, halves
+
+
 def lowest_point(origins: np.ndarray, rotations: np.ndarray, widths: np.ndarray, dims: VoxelDims) -> np.ndarray:
     """(K,) lowest grid z reached by any gripper part (fingers at ``widths``, palm), analytically."""
-    k = len(origins)
-    fl, fw, ft = dims.finger_length, dims.finger_width, dims.finger_thickness
-    centres, halves = [], []
-    for sign in (-1.0, 1.0):
-        centres.append(np.stack([np.zeros(k), sign * (widths / 2 + ft / 2), np.full(k, -fl / 2)], axis=1))
-        halves.append(np.broadcast_to([fw / 2, ft / 2, fl / 2], (k, 3)))
-    centres.append(np.broadcast_to([0.0, 0.0, -fl - dims.palm_depth / 2], (k, 3)))
-    halves.append(np.broadcast_to([fw / 2, dims.max_opening / 2 + ft, dims.palm_depth / 2], (k, 3)))
+    centres, halves = gripper_part_boxes(widths, dims)
     zrow = rotations[:, 2, :]  # (K, 3): grid z of each gripper axis
-    lows = [np.einsum("kj,kj->k", zrow, c) - np.einsum("kj,kj->k", np.abs(zrow), h)
-            for c, h in zip(centres, halves, strict=True)]
-    return origins[:, 2] + np.min(np.stack(lows, axis=1), axis=1)
+    lows = np.einsum("kj,kpj->kp", zrow, centres) - np.einsum("kj,kpj->kp", np.abs(zrow), halves)
+    return origins[:, 2] + lows.min(axis=1)

@@ -9,7 +9,7 @@ import numpy as np
 from pssnet_core.geometry import GridPose
 from pssnet_core.grasps.config import GraspConfig, VoxelDims
 from pssnet_core.grasps.inputs import check_occupancy
-from pssnet_core.grasps.lattice import PackedGrids, box_or, lattice_count, lowest_point
+from pssnet_core.grasps.lattice import PackedGrids, box_or, gripper_part_boxes, lattice_count, lowest_point
 from pssnet_core.grasps.results import GraspCandidates
 
 
@@ -137,14 +137,12 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     coverage = np.where(has, coverage / 2.0, 0.0)
 
     # Fingers and palm.
+    centres, halves = gripper_part_boxes(widths, dims)
     finger_hit = np.zeros((k, s), dtype=bool)
-    for sign in (-1.0, 1.0):
-        centre = np.stack([np.zeros(k), sign * (widths / 2 + ft / 2), np.full(k, -fl / 2)], axis=1)
-        finger_hit |= bits.unpack(box_or(bits.data, bits.padded, origins, rot, centre,
-                                         np.array([fw / 2, ft / 2, fl / 2]), (nx, lattice_count(ft, 1.0), nz),
-                                         keep=()))
-    palm_hit = bits.unpack(box_or(bits.data, bits.padded, origins, rot, np.array([0.0, 0.0, -fl - dims.palm_depth / 2]),
-                                  np.array([fw / 2, wmax / 2 + ft, dims.palm_depth / 2]),
+    for part in (0, 1):
+        finger_hit |= bits.unpack(box_or(bits.data, bits.padded, origins, rot, centres[:, part], halves[:, part],
+                                         (nx, lattice_count(ft, 1.0), nz), keep=()))
+    palm_hit = bits.unpack(box_or(bits.data, bits.padded, origins, rot, centres[:, 2], halves[:, 2],
                                   (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0)),
                                   keep=()))
     # The contact normals only where the rest holds and the pads hold a body across (MIN_NORMAL_EXTENT): on a
@@ -310,15 +308,14 @@ def observed_point_hits(candidates: GraspCandidates, points_grid: np.ndarray, di
     _, first = np.unique(np.floor(points_grid * 2.0).astype(np.int64), axis=0, return_index=True)
     points = points_grid[np.sort(first)]
     index = np.flatnonzero(which) if which is not None else np.arange(k)
-    fl, fw, ft = dims.finger_length, dims.finger_width, dims.finger_thickness
+    centres, halves = gripper_part_boxes(candidates.widths, dims)
     for start in range(0, len(index), chunk):
         part = index[start:start + chunk]
         # each point in each candidate's gripper frame (x, y closing, z approach; origin between the fingertips)
-        local = (points[None] - candidates.origins[part][:, None]) @ candidates.rotations[part]
-        x, y, z = np.abs(local[..., 0]) <= fw / 2, np.abs(local[..., 1]), local[..., 2]
-        half = candidates.widths[part][:, None] / 2
-        finger[part] = (x & (y > half) & (y <= half + ft) & (z >= -fl) & (z <= 0.0)).any(axis=1)
-        palm[part] = (x & (y <= dims.max_opening / 2 + ft) & (z >= -fl - dims.palm_depth) & (z < -fl)).any(axis=1)
+        local = (points[None] - candidates.origins[part][:, None]) @ candidates.rotations[part]  # (k, M, 3)
+        inside = [(np.abs(local - centres[part, p, None]) <= halves[part, p, None]).all(axis=-1).any(axis=1)
+                  for p in range(3)]
+        finger[part], palm[part] = inside[0] | inside[1], inside[2]
     return finger, palm
 
 
