@@ -22,7 +22,9 @@ from pssnet_core.trials import HEADLESS_GL
 
 os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
 
-from pssnet_core.grasps import GripperConfig  # noqa: E402
+from pssnet_core.grasps import GraspConfig  # noqa: E402
+from pssnet_core.grasps.config import VoxelDims  # noqa: E402
+from pssnet_core.grasps.lattice import gripper_part_boxes  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
 from pssnet_core.trials.run import TrialsConfig, read_run_records  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
@@ -31,15 +33,13 @@ from pssnet_core.trials.strategies import Strategist  # noqa: E402
 STRATEGY = "pssnet_second_look"
 
 
-def inside_gripper(points: np.ndarray, width: float, gripper: GripperConfig, back: float) -> tuple[int, int]:
+def inside_gripper(points: np.ndarray, width: float, grasps: GraspConfig, back: float) -> tuple[int, int]:
     """Points (gripper frame, metres) inside a finger and inside the palm, swept ``back`` along the approach."""
-    x, y, z = points.T
-    across = np.abs(x) <= gripper.finger_width / 2
-    finger = across & (np.abs(y) > width / 2) & (np.abs(y) <= width / 2 + gripper.finger_thickness)
-    finger &= (z >= -gripper.finger_length - back) & (z <= 0.0)
-    palm = across & (np.abs(y) <= gripper.max_opening / 2 + gripper.finger_thickness)
-    palm &= (z >= -gripper.finger_length - gripper.palm_depth - back) & (z < -gripper.finger_length)
-    return int(finger.sum()), int(palm.sum())
+    centres, halves = gripper_part_boxes(np.array([width]), VoxelDims.of(grasps, 1.0))  # 1 m "voxels": metres
+    centres[..., 2] -= back / 2  # each part from where the hand starts to where it stops
+    halves[..., 2] += back / 2
+    inside = [int((np.abs(points - centres[0, p]) <= halves[0, p]).all(axis=1).sum()) for p in range(3)]
+    return inside[0] + inside[1], inside[2]
 
 
 def main() -> None:
@@ -57,7 +57,6 @@ def main() -> None:
     factory = SceneFactory(config.scenario)
     strategist = Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, config.num_samples,
                             config.physics, config.scenario.clutter_margin)
-    gripper = config.grasps.gripper
     with_points = {"failed": 0, "lifted": 0}
     for label, indices in (("failed", failed), ("lifted", lifted)):
         for index in indices:
@@ -75,8 +74,8 @@ def main() -> None:
             mesh.apply_transform(scene.physics.object_pose)
             true = trimesh.sample.sample_surface(mesh, 20000, seed=0)[0]
             rotation, translation = gripper_from_world[:3, :3], gripper_from_world[:3, 3]
-            seen_in = inside_gripper(seen @ rotation.T + translation, choice.width, gripper, config.physics.pre_grasp)
-            true_in = inside_gripper(true @ rotation.T + translation, choice.width, gripper, config.physics.pre_grasp)
+            seen_in, true_in = (inside_gripper(p @ rotation.T + translation, choice.width, config.grasps,
+                                               config.physics.pre_grasp) for p in (seen, true))
             with_points[label] += int(sum(seen_in) > 0)
             print(f"{label} scene {index}: {records[index].outcome}, {choice.kind} grasp scored {choice.score:.2f}, "
                   f"{choice.width * 1000:.1f} mm | observed points in finger / palm {seen_in[0]} / {seen_in[1]} | "
