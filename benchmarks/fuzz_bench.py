@@ -21,6 +21,7 @@ with MALLOC_MMAP_THRESHOLD_=131072 (the node inherits it): every image-sized buf
 system when freed, so what still grows is held by the process.
 
     .venv/bin/python benchmarks/fuzz_bench.py [--requests 10000] [--messages 10000] [--seed 0] [--json PATH]
+        [--families valid_candidate_places,...]
 """
 
 from __future__ import annotations
@@ -275,14 +276,15 @@ class Fuzzer:
         view: the valid scene (the synthetic camera's).
         seed: seed of the numpy generator every mutation draws from.
         samples: num_samples of the requests that name one.
+        families: the request families drawn (default all of :data:`REQUEST_FAMILIES`).
     """
 
-    def __init__(self, view: RenderedView, seed: int, samples: int) -> None:
+    def __init__(self, view: RenderedView, seed: int, samples: int, families: list[str] | None = None) -> None:
         self.rng = np.random.default_rng(seed)
         k = view.intrinsics
         self.base = Parts(depth=view.depth.astype(np.float32), mask=view.mask.astype(np.uint8),
                           k=k.matrix().reshape(-1), width=k.width, height=k.height, num_samples=samples)
-        self._request_families = list(REQUEST_FAMILIES)
+        self._request_families = list(families or REQUEST_FAMILIES)
         self._request_weights = family_weights(self._request_families)
         self._topic_families = [n for n in REQUEST_FAMILIES if n not in REQUEST_ONLY]
         self._topic_weights = family_weights(self._topic_families)
@@ -388,9 +390,13 @@ class Tally:
     by_family: dict[str, Counter] = field(default_factory=dict)
     unexpected: list[str] = field(default_factory=list)
     rss_kib: list[tuple[int, int]] = field(default_factory=list)  # (requests sent, node RSS) every 1000 requests
+    slowest_s: dict[str, float] = field(default_factory=dict)  # per family, the longest answered request
+    unanswered_requests: list[tuple[int, str]] = field(default_factory=list)  # (request index, family)
 
-    def record(self, family: str, outcome: str, message: str) -> None:
+    def record(self, family: str, outcome: str, message: str, seconds: float = 0.0) -> None:
         self.by_family.setdefault(family, Counter())[outcome] += 1
+        if outcome != "unanswered":
+            self.slowest_s[family] = max(self.slowest_s.get(family, 0.0), seconds)
         expected = REQUEST_FAMILIES[family][0]
         if outcome in (SUCCESS, REFUSAL) and expected != EITHER and outcome != expected:
             self.unexpected.append(f"{family}: {outcome}: {message[:160]}")
@@ -407,10 +413,12 @@ def fuzz_service(ros: RosClient, node: RosProcess, fuzzer: Fuzzer, count: int, t
         family = fuzzer.draw_family()
         request = fuzzer.request(family, ros.node.get_clock().now().nanoseconds)
         tally.sent += 1
+        sent_at = time.monotonic()
         try:
             response = ros.call(service, request, timeout)
         except TimeoutError:
             tally.unanswered += 1
+            tally.unanswered_requests.append((i, family))
             tally.record(family, "unanswered", "")
             if not node.running():
                 print(f"[fuzz] node exited (code {node.proc.returncode}) after request {i} ({family})")
@@ -421,7 +429,7 @@ def fuzz_service(ros: RosClient, node: RosProcess, fuzzer: Fuzzer, count: int, t
             tally.succeeded += 1
         else:
             tally.refused += 1
-        tally.record(family, SUCCESS if response.success else REFUSAL, response.message)
+        tally.record(family, SUCCESS if response.success else REFUSAL, response.message, time.monotonic() - sent_at)
         if (i + 1) % PROGRESS_EVERY == 0:
             tally.rss_kib.append((i + 1, rss_kib(node.pid)))
             print(f"[fuzz] {i + 1} requests in {time.monotonic() - start:.0f} s: {tally.succeeded} succeeded, "
@@ -484,6 +492,8 @@ def main() -> int:
     parser.add_argument("--warm-up", type=int, default=300,
                         help="fuzzed requests and messages (another seed) before the RSS baseline")
     parser.add_argument("--threads", type=int, default=1, help="node torch threads")
+    parser.add_argument("--families", default="",
+                        help="comma-separated request families to draw (default: all; the warm-up draws all)")
     parser.add_argument("--model", default="", help="checkpoint (default: the shipped model)")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS_DOMAIN_ID (default: one no DDS participant on this machine uses)")
@@ -495,7 +505,11 @@ def main() -> int:
     from pssnet_interfaces.srv import SampleCompletions
 
     view = render_scene(SceneOptions())
-    fuzzer = Fuzzer(view, args.seed, args.samples)
+    families = [name for name in args.families.split(",") if name]
+    unknown = sorted(set(families) - set(REQUEST_FAMILIES))
+    if unknown:
+        parser.error(f"unknown request families {unknown}; known: {', '.join(REQUEST_FAMILIES)}")
+    fuzzer = Fuzzer(view, args.seed, args.samples, families)
     # Continuous mode on, so that topic sets run through the whole pipeline too; grasps off and a low rate keep
     # the node's share of the 2 cores small (the service phase plans grasps for some valid requests).
     model = {"model_path": args.model} if args.model else {}
@@ -559,6 +573,12 @@ def main() -> int:
           + "".join(f"\n[fuzz]   {line}" for line in tally.unexpected[:10]))
     print("[fuzz] per family (succeeded/refused/unanswered): " + ", ".join(
         f"{name} {c[SUCCESS]}/{c[REFUSAL]}/{c['unanswered']}" for name, c in sorted(tally.by_family.items())))
+    slowest = sorted(tally.slowest_s.items(), key=lambda item: -item[1])[:5]
+    print("[fuzz] slowest answered request per family (the five slowest families): "
+          + ", ".join(f"{name} {seconds:.2f} s" for name, seconds in slowest))
+    if tally.unanswered_requests:
+        print("[fuzz] unanswered (request index, family): "
+              + ", ".join(f"{i} {name}" for i, name in tally.unanswered_requests[:20]))
     print(f"[fuzz] topic messages: {topics.sent} sent in {topic_s:.0f} s at {args.rate:g}/s, "
           f"{counters.get('messages_received', 0)} received by the node (best effort); sets per family: "
           + ", ".join(f"{k} {v}" for k, v in sorted(topics.families.items())))
@@ -581,6 +601,8 @@ def main() -> int:
             "final_request_succeeded": final_ok,
             "node_counters": counters, "node_exit_code": code,
             "request_families": {k: dict(v) for k, v in sorted(tally.by_family.items())},
+            "slowest_answered_s": {k: round(v, 3) for k, v in sorted(tally.slowest_s.items())},
+            "unanswered_requests": tally.unanswered_requests,
             "topic_families": dict(sorted(topics.families.items())), "rss_kib_by_requests": tally.rss_kib,
             "rss_kib_by_messages": topics.rss_kib}, indent=2))
     return 0 if met else 1

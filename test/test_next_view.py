@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from test_sampling import camera_facing_grid
 
 from pssnet_core.data.scenes import ObjectScene, render_view
-from pssnet_core.geometry import GridConfig, ObservationError, ViewEvidence, fuse_view
+from pssnet_core.geometry import CameraIntrinsics, GridConfig, ObservationError, ViewEvidence, fuse_view
 from pssnet_core.inference import Completer
 from pssnet_core.next_view import NextViewConfig, rank_views, render_sample_depths, scaled_intrinsics, separability
 from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineConfig, PipelineInputError
@@ -169,6 +170,54 @@ def test_the_view_that_tells_the_samples_apart_ranks_first(mug_views):
         rank_views(samples, np.array([0.5, 0.5]), observation.pose, cameras, front.intrinsics, [None])
     with pytest.raises(ValueError):
         NextViewConfig(scale=0.0)
+
+
+def splatted_by_every_pixel(occupancy: np.ndarray, pose, camera_from_first: np.ndarray, intrinsics) -> np.ndarray:
+    """What :func:`render_sample_depths` must give, pixel by pixel: the nearest face of the voxels whose projected
+    square covers the pixel's centre (at least the pixel under the voxel's centre)."""
+    depth = np.full((len(occupancy), intrinsics.height, intrinsics.width), np.inf)
+    cols, rows = np.meshgrid(np.arange(intrinsics.width), np.arange(intrinsics.height))
+    for k, grid in enumerate(occupancy):
+        centres = pose.occupied_centres(grid) @ camera_from_first[:3, :3].T + camera_from_first[:3, 3]
+        for x, y, z in centres[centres[:, 2] > 1e-3]:
+            u, v = intrinsics.fx * x / z + intrinsics.cx, intrinsics.fy * y / z + intrinsics.cy
+            half_u = max(0.5 * pose.voxel_size * intrinsics.fx / z, 0.5)
+            half_v = max(0.5 * pose.voxel_size * intrinsics.fy / z, 0.5)
+            covered = (np.abs(cols - u) <= half_u) & (np.abs(rows - v) <= half_v)
+            depth[k][covered] = np.minimum(depth[k][covered], z - 0.5 * pose.voxel_size)
+    return depth
+
+
+def test_a_camera_at_the_samples_or_with_a_narrow_view_renders_every_covered_pixel(mug_views):
+    """A valid candidate place may put the camera a centimetre from the samples, where each voxel covers much of the
+    image (a fuzzed request with such a place went unanswered for over a minute); the renderer lists only the
+    pixels inside the image, and gives what a per-pixel test gives."""
+    front, _, observation, truth = mug_views
+    pose = observation.pose
+    samples = np.stack([truth, np.roll(truth, 3, axis=1)])
+    small = scaled_intrinsics(front.intrinsics, 0.1)  # 64 x 48: the per-pixel reference stays cheap
+    narrow = CameraIntrinsics(fx=2000.0, fy=2000.0, cx=31.5, cy=23.5, width=64, height=48)  # ~1.8 degrees
+    centre = pose.occupied_centres(truth).mean(axis=0)
+    rng = np.random.default_rng(0)
+    cameras = []
+    for distance in (0.2, 0.03, 0.01, 0.0):  # from a working distance to the middle of the mug
+        camera = np.eye(4)
+        camera[:3, 3] = np.array([0.0, 0.0, distance]) - centre
+        cameras.append(camera)
+    for _ in range(4):  # turned, within a few centimetres of the mug's centre
+        camera = np.eye(4)
+        camera[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        camera[:3, 3] = -camera[:3, :3] @ (centre + rng.uniform(-0.05, 0.05, 3))
+        cameras.append(camera)
+    for camera in cameras:
+        for intrinsics in (small, narrow):
+            expected = splatted_by_every_pixel(samples, pose, camera, intrinsics)
+            depths = render_sample_depths(samples, pose, camera, intrinsics)
+            np.testing.assert_array_equal(np.isfinite(depths), np.isfinite(expected))
+            np.testing.assert_allclose(depths, expected, rtol=0, atol=1e-6)  # centres summed in another order
+    # From within a centimetre or two the samples cover most of the image.
+    near = render_sample_depths(samples, pose, cameras[1], small)
+    assert np.isfinite(near).mean() > 0.5
 
 
 def test_the_pipeline_completes_two_views_and_names_a_bad_second_one(mug_views):

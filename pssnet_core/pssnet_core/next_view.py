@@ -79,9 +79,19 @@ def _voxel_centres(occupancy: np.ndarray, pose: GridPose) -> tuple[np.ndarray, n
             np.repeat(np.arange(len(centres)), [len(c) for c in centres]))
 
 
+#: pixels of voxel squares expanded at once when rendering (bounds the memory of one step: ~40 bytes a pixel)
+SPLAT_CHUNK = 1 << 21
+
+
 def _render(points: np.ndarray, sample: np.ndarray, count: int, voxel_size: float, camera_from_first: np.ndarray,
             intrinsics: CameraIntrinsics) -> np.ndarray:
-    """:func:`render_sample_depths` of voxel centres already gathered (once for every candidate of a ranking)."""
+    """:func:`render_sample_depths` of voxel centres already gathered (once for every candidate of a ranking).
+
+    Each voxel's square is clipped to the image before its pixels are listed, so the work is the pixels the
+    squares cover in the image, whatever the camera: a camera a few centimetres from the samples (any valid pose a
+    client may send) or with a narrow field of view projects each voxel over hundreds of pixels, and listing
+    them over the square's whole extent took minutes.
+    """
     h, w = intrinsics.height, intrinsics.width
     depth = np.full(count * h * w, np.inf)
     transform = np.asarray(camera_from_first, dtype=np.float64)
@@ -96,26 +106,49 @@ def _render(points: np.ndarray, sample: np.ndarray, count: int, voxel_size: floa
     half_u = np.maximum(0.5 * voxel_size * intrinsics.fx / z, 0.5)
     half_v = np.maximum(0.5 * voxel_size * intrinsics.fy / z, 0.5)
     near = z - 0.5 * voxel_size
-    # Pixels whose centres the voxel's projected square covers (at least the one under its centre): a pixel d
-    # from the one under the centre lies at least |d| - 0.5 from it.
-    reach = int(np.floor(max(half_u.max(), half_v.max()) + 0.5))
-    base_u, base_v = np.rint(u), np.rint(v)
-    flats, depths = [], []
-    for du in range(-reach, reach + 1):
-        for dv in range(-reach, reach + 1):
-            pu, pv = base_u + du, base_v + dv
-            covered = (np.abs(pu - u) <= half_u) & (np.abs(pv - v) <= half_v)
-            covered &= (pu >= 0) & (pu < w) & (pv >= 0) & (pv < h)
-            flats.append(sample[covered] * (h * w) + pv[covered].astype(np.int64) * w + pu[covered].astype(np.int64))
-            depths.append(near[covered])
-    flat, near = np.concatenate(flats), np.concatenate(depths)
-    if len(flat):
-        # The nearest voxel per pixel: grouped by pixel, the minimum of each group.
+    # The pixels whose centres the voxel's projected square covers (at least the one under its centre), as a
+    # range of columns and rows inside the image.
+    u0, u1 = _covered_range(u, half_u, w)
+    v0, v1 = _covered_range(v, half_v, h)
+    width, height = u1 - u0 + 1, v1 - v0 + 1
+    area = np.where((width > 0) & (height > 0), width * height, 0)
+    inside = np.flatnonzero(area)
+    # Split the voxels into runs of at most SPLAT_CHUNK covered pixels (a single voxel never covers more than the
+    # image), list each run's pixels and keep the nearest voxel per pixel.
+    ends = np.cumsum(area[inside])
+    cuts = np.searchsorted(ends, np.arange(SPLAT_CHUNK, ends[-1] if len(ends) else 0, SPLAT_CHUNK), side="right")
+    for run in np.split(inside, cuts):
+        if not len(run):
+            continue
+        n = area[run]
+        which = np.repeat(run, n)
+        offset = np.arange(len(which)) - np.repeat(np.cumsum(n) - n, n)
+        pu = u0[which] + offset % width[which]
+        pv = v0[which] + offset // width[which]
+        flat = sample[which] * (h * w) + pv * w + pu
         order = np.argsort(flat)
-        flat, near = flat[order], near[order]
+        flat, nearest = flat[order], near[which][order]
         starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
-        depth[flat[starts]] = np.minimum.reduceat(near, starts)
+        flat = flat[starts]
+        depth[flat] = np.minimum(depth[flat], np.minimum.reduceat(nearest, starts))
     return depth.reshape(count, h, w)
+
+
+def _covered_range(centre: np.ndarray, half: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """First and last pixel index p (int64, clipped to [0, size - 1]; first > last: none) with |p - centre| <= half.
+
+    The bounds from ceil/floor are moved by one where rounding put them on the wrong side of that test, so that
+    a pixel is covered exactly when the test says so.
+    """
+    first = np.ceil(centre - half)
+    first = np.where(np.abs(first - 1 - centre) <= half, first - 1, first)
+    first = np.where(np.abs(first - centre) > half, first + 1, first)
+    last = np.floor(centre + half)
+    last = np.where(np.abs(last + 1 - centre) <= half, last + 1, last)
+    last = np.where(np.abs(last - centre) > half, last - 1, last)
+    first = np.clip(first, 0, size)  # clipped as floats: a far-off centre may not fit an int64
+    last = np.clip(last, -1, size - 1)
+    return first.astype(np.int64), last.astype(np.int64)
 
 
 def separability(depths: np.ndarray, weights: np.ndarray, config: NextViewConfig,
