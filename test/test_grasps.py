@@ -34,6 +34,7 @@ N = 32
 VOXEL = 0.00625  # 0.2 m grid: the default gripper opens 12.8 voxels
 CONFIG = GraspConfig()
 CLEAR = CONFIG.clearance / VOXEL
+GAP = CLEAR - 0.5  # left between a pad and the outermost voxels' faces: the clearance is from their centres
 FL = CONFIG.gripper.finger_length / VOXEL
 FT = CONFIG.gripper.finger_thickness / VOXEL
 
@@ -127,17 +128,40 @@ def test_empty_completions_give_no_grasps():
 # -------------------------------------------------------------------------------------- width
 
 
-def test_width_of_a_five_voxel_bar_is_five_voxels_plus_clearance():
+def test_width_of_a_five_voxel_bar_is_its_voxel_centres_plus_clearance():
     grasps = plan_grasps(bar(), identity_pose(), support_z=2.0)
     grid = grasps.grid
     along_x = np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9  # closing axis = grid x
     assert along_x.sum() >= 5
-    np.testing.assert_allclose(grid.widths[along_x], 5.0 + 2 * CLEAR, atol=1e-6)
+    # 4 voxels between the outermost voxels' centres, the clearance beyond each
+    np.testing.assert_allclose(grid.widths[along_x], 4.0 + 2 * CLEAR, atol=1e-6)
     np.testing.assert_allclose(grid.origins[along_x, 0], 12.5, atol=1e-6)  # centred on the bar
-    np.testing.assert_allclose(grasps.widths[along_x], (5.0 + 2 * CLEAR) * VOXEL, atol=1e-9)
+    np.testing.assert_allclose(grasps.widths[along_x], (5.0 + 2 * GAP) * VOXEL, atol=1e-9)
     best = grasps.subset(slice(0, 1))
     assert best.scores[0] == 1.0
     assert grasps.widths[0] <= 8.0 * VOXEL + 2 * CONFIG.clearance + 1e-9  # the narrow side is preferred
+    # Measured from the voxels' outer faces (the rule before stop 45), the whole clearance beyond them.
+    faces = dataclasses.replace(CONFIG, surface_at_voxel_centres=False)
+    grid = generate_candidates(bar(), identity_pose(), config=faces, support_z=2.0)
+    along_x = np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9
+    np.testing.assert_allclose(grid.widths[along_x], 5.0 + 2 * CLEAR, atol=1e-6)
+
+
+def test_a_box_whose_voxels_read_a_voxel_wider_is_still_closed_across():
+    """12 voxels (7.5 cm) of a box whose faces lie inside its outermost voxels (6.5-7 cm): the 8 cm hand closes
+    across it with the clearance from those voxels' centres, and no finger enters an occupied voxel."""
+    box = bar(2, x=(10, 22))
+    grid = generate_candidates(box, identity_pose(), config=CONFIG, support_z=2.0)
+    along_x = np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9
+    assert along_x.any()
+    np.testing.assert_allclose(grid.widths[along_x], 12.0 + 2 * GAP, atol=1e-6)
+    assert 12.0 + 2 * GAP <= CONFIG.gripper.max_opening / VOXEL
+    checks = check_grasps(grid.subset(np.flatnonzero(along_x)), box, identity_pose(), 2.0, CONFIG)
+    assert not checks.finger_hit.any() and not checks.palm_hit.any()
+    assert checks.holds[grid.kinds[along_x] == 0].all()  # every top grasp across it (some side ones reach the table)
+    faces = dataclasses.replace(CONFIG, surface_at_voxel_centres=False)
+    grid = generate_candidates(box, identity_pose(), config=faces, support_z=2.0)
+    assert not np.any(np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9)  # 12 + 2 x 0.8 > 12.8 voxels
 
 
 def test_width_is_the_widest_completion_plus_clearance():
@@ -145,7 +169,7 @@ def test_width_is_the_widest_completion_plus_clearance():
     occ[1, 15:17] = occ[1, 14]  # completion 1 is 7 voxels thick
     grid = generate_candidates(occ, identity_pose(), config=CONFIG, support_z=2.0)
     along_x = np.abs(np.abs(grid.rotations[:, 0, 1]) - 1.0) < 1e-9
-    np.testing.assert_allclose(grid.widths[along_x], 7.0 + 2 * CLEAR, atol=1e-6)
+    np.testing.assert_allclose(grid.widths[along_x], 7.0 + 2 * GAP, atol=1e-6)
     holds, _ = score_grasps(grid.subset(np.flatnonzero(along_x)), occ, identity_pose(), 2.0, CONFIG)
     assert holds.any(axis=0).all()
 
@@ -579,3 +603,5 @@ def test_with_the_observed_points_check_no_finger_lands_on_surface_the_camera_sa
             assert np.any((finger | palm) & held)  # without it some grasps that hold sit in the seen surface
     with pytest.raises(GraspError, match="observed_points_check"):
         GraspConfig(observed_points_check="yes")
+    with pytest.raises(GraspError, match="surface_at_voxel_centres"):
+        GraspConfig(surface_at_voxel_centres="yes")

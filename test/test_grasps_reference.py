@@ -23,9 +23,10 @@ from pssnet_core.grasps import GraspCandidates, GraspConfig, GraspSet, approach_
 from pssnet_core.grasps.lattice import PackedGrids, box_or, voxel_box_rows
 
 FIXTURE = Path(__file__).parent / "data" / "grasps_reference.npz"
-# The kernel's rules as recorded; the observed-points check came later (its own tests in test_grasps.py): on the
-# shifted completions of plan70 the recorded points fall inside fingers that the voxels leave free.
-CONFIG = GraspConfig(observed_points_check=False)
+# The kernel's rules as recorded; the observed-points check and the clearance from the voxels' centres came later
+# (their own tests in test_grasps.py): on the shifted completions of plan70 the recorded points fall inside fingers
+# that the voxels leave free, and the recorded widths are from the voxels' faces.
+CONFIG = GraspConfig(observed_points_check=False, surface_at_voxel_centres=False)
 CHECKS = ("fits", "above", "contains", "finger_hit", "palm_hit")
 
 

@@ -128,7 +128,7 @@ def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
 
 def test_every_pipeline_parameter_names_a_config_field_with_its_default():
     fields = [spec.field for spec in PARAMETERS if spec.field]
-    assert len(fields) == len(set(fields)) == 42
+    assert len(fields) == len(set(fields)) == 43
     for spec in PARAMETERS:
         if spec.field:
             assert spec.default == config_default(spec.field), spec.name
@@ -146,7 +146,8 @@ def test_every_pipeline_parameter_names_a_config_field_with_its_default():
                "up_check_deg": 10.0, "grasp_side_rolls": [0.0, 45.0, 90.0], "grasp_tilted_pitches": [30.0, 60.0],
                "grasp_shallow_depths": [], "grasp_thin_anchor_bias": 2.0, "grasp_rank_by": "fraction",
                "grasp_grip_force": 40.0, "grasp_holds_axial_load": True, "grasp_friction": 0.8,
-               "grasp_object_density": 400.0, "grasp_observed_points_check": False}
+               "grasp_object_density": 400.0, "grasp_observed_points_check": False,
+               "grasp_surface_at_voxel_centres": False}
     assert set(changed) == {s.name for s in PARAMETERS if s.field}
     config = pipeline_config({**values, **changed})
     for name, value in changed.items():

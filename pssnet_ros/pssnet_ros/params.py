@@ -205,6 +205,10 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               field="grasps.gripper.min_object_width", constraints="< grasp_max_opening"),
     ParamSpec("grasp_clearance", "free space between each finger pad and the widest completion, metres", 0.0,
               0.25, field="grasps.clearance", constraints="< grasp_max_opening / 2"),
+    ParamSpec("grasp_surface_at_voxel_centres", "the clearance is measured from the completions' outermost voxels' "
+              "centres, where the surface passes (a voxel is occupied wherever the surface crosses it), not from "
+              "their outer faces; no finger enters an occupied voxel either way",
+              field="grasps.surface_at_voxel_centres"),
     ParamSpec("grasp_max_candidates", "candidate grasps scored against every completion", 1, 100_000,
               field="grasps.max_candidates"),
     ParamSpec("grasp_top_yaws", "closing-axis angles of top-down grasps (0 = no top grasps)", 0, 180,

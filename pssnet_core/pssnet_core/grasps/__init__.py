@@ -80,7 +80,10 @@ contact, so that a thin part in front of a body (a handle) can be pinched withou
 body. Then the closing axis is swept at full opening (half-voxel resolution): in each completion, the run of
 object along the closing axis through the anchor is measured; the completions whose run fits the gripper (with
 ``clearance`` on both sides) define the needed opening, ``width = their combined extent + 2 clearance`` (the
-widest completion's extent when the runs share a side), and the grasp is re-centred on it. A completion whose
+widest completion's extent when the runs share a side), and the grasp is re-centred on it. With
+``surface_at_voxel_centres`` (default) the extent runs between the outermost voxels' centres, where the surface
+passes on average (a voxel is occupied wherever the surface crosses it), and no finger may still enter an
+occupied voxel. A completion whose
 run does not fit is not held by this grasp; a run stops at the first empty slice, so a mug's rim is pinched
 wall by wall rather than across the whole cup. Near-duplicates are dropped; at most ``max_candidates`` are
 kept (a seeded random subset). A caller's ``allowed`` filter (approaches clear of known clutter) is applied before

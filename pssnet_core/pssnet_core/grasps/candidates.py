@@ -225,11 +225,13 @@ def _placed(bits: PackedGrids, union: np.ndarray, p: np.ndarray, orient_id: np.n
                     keep=(1,))  # (W, n_y, K)
     lo, hi, has = _run_through(bits, slices, half_n)
     extent = ys[hi] - ys[lo] + 0.5
-    fits = has & (lo > 0) & (hi < n_y - 1) & (extent + 2 * dims.clearance <= wmax + 1e-9)
+    # Gap left between each pad and the run's outer voxel faces (``GraspConfig.surface_at_voxel_centres``).
+    gap = max(dims.clearance - 0.5, 0.0) if config.surface_at_voxel_centres else dims.clearance
+    fits = has & (lo > 0) & (hi < n_y - 1) & (extent + 2 * gap <= wmax + 1e-9)
     ok = fits.any(axis=1)
     lo_u = np.where(ok, np.where(fits, lo, n_y).min(axis=1), 0)
     hi_u = np.where(ok, np.where(fits, hi, -1).max(axis=1), 0)
-    widths = ys[hi_u] - ys[lo_u] + 0.5 + 2 * dims.clearance
+    widths = ys[hi_u] - ys[lo_u] + 0.5 + 2 * gap
     ok &= widths <= wmax + 1e-9
     origins = origins + (0.5 * (ys[lo_u] + ys[hi_u]))[:, None] * rot[:, :, 1]
     origins, rot, widths, orient_id = origins[ok], rot[ok], widths[ok], orient_id[ok]

@@ -61,6 +61,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    default=GraspConfig.observed_points_check,
                    help="no grasp with an observed point inside a finger or the palm (GraspConfig."
                         "observed_points_check; default %(default)s)")
+    p.add_argument("--surface-at-voxel-centres", action=argparse.BooleanOptionalAction,
+                   default=GraspConfig.surface_at_voxel_centres,
+                   help="the fingers' clearance from the completions' outermost voxels' centres, not their faces "
+                        "(GraspConfig.surface_at_voxel_centres; default %(default)s)")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
     p.add_argument("--out", type=Path, default=Path("results/grasp_trials"), help="output directory")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -91,7 +95,8 @@ def run_command(args: argparse.Namespace) -> int:
                           filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
     config = replace(config, scenario=replace(config.scenario, objects=args.objects),
                      grasps=replace(config.grasps, rank_by=args.rank_by,
-                                    observed_points_check=args.observed_points_check))
+                                    observed_points_check=args.observed_points_check,
+                                    surface_at_voxel_centres=args.surface_at_voxel_centres))
     if args.cache_dir is not None:
         config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
     try:
