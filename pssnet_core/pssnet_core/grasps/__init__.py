@@ -82,12 +82,12 @@ object along the closing axis through the anchor is measured; the completions wh
 ``clearance`` on both sides) define the needed opening, ``width = their combined extent + 2 clearance`` (the
 widest completion's extent when the runs share a side), and the grasp is re-centred on it. With
 ``surface_at_voxel_centres`` (default) the extent runs between the outermost voxels' centres, where the surface
-passes on average (a voxel is occupied wherever the surface crosses it), and no finger may still enter an
-occupied voxel. A completion whose
-run does not fit is not held by this grasp; a run stops at the first empty slice, so a mug's rim is pinched
-wall by wall rather than across the whole cup. Near-duplicates are dropped; at most ``max_candidates`` are
-kept (a seeded random subset). A caller's ``allowed`` filter (approaches clear of known clutter) is applied before
-that subset, and pairs are drawn again, up to ``draw_rounds`` rounds, until ``max_candidates`` pass it.
+passes on average (a voxel is occupied wherever the surface crosses it); a finger still never enters an occupied
+voxel. A completion whose run does not fit is not held by this grasp; a run stops at the first empty slice, so a
+mug's rim is pinched wall by wall rather than across the whole cup. Near-duplicates are dropped; at most
+``max_candidates`` are kept (a seeded random subset). A caller's ``allowed`` filter (approaches clear of known
+clutter) is applied before that subset, and pairs are drawn again, up to ``draw_rounds`` rounds, until
+``max_candidates`` pass it.
 Deterministic given the seed.
 
 Support plane: the grid is gravity aligned, so the plane is the horizontal plane ``z = support_z`` (grid
