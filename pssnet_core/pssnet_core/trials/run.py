@@ -296,19 +296,18 @@ def save_filmstrip(path: Path, scenario: str, films: list[SceneFilm]) -> None:
 
 
 def read_records(path: Path) -> list[TrialRecord]:
-    """The records of a run's records.jsonl (none when the file does not exist)."""
+    """The records of a run's records.jsonl, or of a gzipped copy when ``path`` ends in .gz (none when the file
+    does not exist)."""
     if not path.is_file():
         return []
-    return [TrialRecord(**json.loads(line)) for line in path.read_text().splitlines() if line.strip()]
+    text = gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
+    return [TrialRecord(**json.loads(line)) for line in text.splitlines() if line.strip()]
 
 
 def read_run_records(directory: Path) -> list[TrialRecord]:
     """A run directory's records: its records.jsonl, or records.jsonl.gz as committed under results/."""
-    packed = directory / "records.jsonl.gz"
-    if not (directory / "records.jsonl").is_file() and packed.is_file():
-        with gzip.open(packed, "rt") as lines:
-            return [TrialRecord(**json.loads(line)) for line in lines if line.strip()]
-    return read_records(directory / "records.jsonl")
+    plain = directory / "records.jsonl"
+    return read_records(plain if plain.is_file() else directory / "records.jsonl.gz")
 
 
 def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress: bool = True) -> list[TrialRecord]:
