@@ -3,14 +3,17 @@
 For the failed scenes of a ``pssnet_second_look`` trial run (and its first lifted ones), the strategy's choice is
 made again (deterministic: the run's scene seeds), and the observed points of both views and the true object's
 surface are counted inside the chosen grasp's fingers and palm at the grasp and along the approach
-(``PhysicsConfig.pre_grasp`` back along it). Results in ``results/second_look/README.md``::
+(``PhysicsConfig.pre_grasp`` back along it). The planner is set as the run's ``settings.json`` records it (a switch
+the run predates is off). Results in ``results/second_look/README.md`` and
+``results/grasp_trials/voxel_centres/README.md``::
 
-    .venv/bin/python scripts/observed_points_diagnosis.py results/second_look/box --seed 0 [--successes 25]
+    .venv/bin/python scripts/observed_points_diagnosis.py results/second_look/box [--successes 25]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -45,23 +48,25 @@ def inside_gripper(points: np.ndarray, width: float, grasps: GraspConfig, back: 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run", type=Path, help="a grasp-trials output directory with pssnet_second_look records")
-    parser.add_argument("--seed", type=int, default=0, help="the run's --seed")
     parser.add_argument("--successes", type=int, default=25, help="lifted scenes to compare with")
     args = parser.parse_args()
     records = {r.index: r for r in read_run_records(args.run) if r.strategy == STRATEGY}
     failed = sorted(i for i, r in records.items() if not r.success)
     lifted = sorted(i for i, r in records.items() if r.success)[:args.successes]
-    # the planner as the diagnosed runs had it: before the observed-points check (which this diagnosis led to)
-    config = TrialsConfig(seed=args.seed)
-    config = replace(config, grasps=replace(config.grasps, observed_points_check=False))
+    # The scenes and planner as the run had them; runs made before a planner switch existed ran without it.
+    settings = json.loads((args.run / "settings.json").read_text())
+    config = TrialsConfig(seed=settings["seed"])
+    config = replace(config, scenario=replace(config.scenario, objects=settings["scenario"]["objects"]),
+                     grasps=replace(config.grasps, **{name: settings["grasps"].get(name, False) for name in
+                                                      ("observed_points_check", "surface_at_voxel_centres")}))
     factory = SceneFactory(config.scenario)
     strategist = Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, config.num_samples,
                             config.physics, config.scenario.clutter_margin)
     with_points = {"failed": 0, "lifted": 0}
     for label, indices in (("failed", failed), ("lifted", lifted)):
         for index in indices:
-            scene = factory.scene(records[index].scenario, index, args.seed)
-            seed = int(np.random.default_rng([args.seed, index]).integers(2**31 - 1))
+            scene = factory.scene(records[index].scenario, index, config.seed)
+            seed = int(np.random.default_rng([config.seed, index]).integers(2**31 - 1))
             first = strategist._complete("pssnet", scene, seed)
             look = strategist._second_look("pssnet", scene, first, seed)
             choice = strategist.choose(scene, (STRATEGY,), seed)[STRATEGY]
