@@ -258,6 +258,28 @@ def test_pipeline_with_the_checked_sampler_and_the_up_vector_check():
         PipelineConfig(sampler="best")
 
 
+def test_config_with_reads_each_value_as_its_fields_type_and_reaches_nested_configs():
+    from pssnet_core.grasps import GraspConfig, GripperConfig
+    from pssnet_core.options import config_with
+
+    config = config_with(GraspConfig(), ["tilted_pitches=20,45,70", "side_yaws=48", "rank_by=fraction",
+                                         "observed_points_check=false", "gripper.grip_force=40",
+                                         "gripper.holds_axial_load=yes", "shallow_depths="])
+    assert config == GraspConfig(tilted_pitches=(20.0, 45.0, 70.0), side_yaws=48, rank_by="fraction",
+                                 observed_points_check=False, shallow_depths=(),
+                                 gripper=GripperConfig(grip_force=40.0, holds_axial_load=True))
+    assert config_with(GraspConfig(), []) == GraspConfig()
+    for bad, reason in ((["side_yaws=1.5"], "'1.5' is not an integer"),
+                        (["observed_points_check=maybe"], "is not true or false"),
+                        (["gripper=1"], "set gripper's fields as gripper.FIELD=VALUE"),
+                        (["seed.x=1"], "seed has no fields"),
+                        (["gripper.palm=1"], "expected NAME=VALUE with NAME one of max_opening"),
+                        (["gripper.max_opening=2"], "max_opening must be in"),  # the config's own check
+                        (["rank_by=fraction"], "not rank_by: they have their own flags")):
+        with pytest.raises(ValueError, match=reason):
+            config_with(GraspConfig(), bad, "grasp option", refused=("rank_by",) if "rank_by" in bad[0] else ())
+
+
 def test_checked_config_with_parses_command_line_options_by_field_type():
     from pssnet_core.pipeline import PipelineConfig
     from pssnet_core.sampling import checked_config_with

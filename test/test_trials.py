@@ -29,7 +29,7 @@ from pssnet_core.inference import Completer
 from pssnet_core.next_view import RING_PLACES
 from pssnet_core.shapes import make_shape
 from pssnet_core.spread import BitRows
-from pssnet_core.trials.cli import chosen_strategies
+from pssnet_core.trials.cli import chosen_strategies, trials_config
 from pssnet_core.trials.collision import ConvexPart, decompose, measure_faithfulness
 from pssnet_core.trials.physics import ClutterBox, PhysicsConfig, PhysicsScene, run_trial
 from pssnet_core.trials.plausible import (
@@ -315,6 +315,16 @@ def test_the_command_is_registered_with_its_options(tmp_path, capsys):
     bad = build_parser().parse_args(["grasp-trials", "--strategies", "oracle", "--sampler-option", "shares=1",
                                      "--out", str(tmp_path)])
     assert bad.func(bad) == 2 and "sampler option 'shares=1'" in capsys.readouterr().err
+    # Any other planner option (recorded in the fingerprint with the rest of the planner), except those with a flag.
+    planner = trials_config(build_parser().parse_args(["grasp-trials", "--grasp-option", "tilted_pitches=20,45,70",
+                                                        "--grasp-option", "gripper.grip_force=40",
+                                                        "--no-observed-points-check"])).grasps
+    assert planner == replace(TrialsConfig().grasps, tilted_pitches=(20.0, 45.0, 70.0), observed_points_check=False,
+                              gripper=replace(TrialsConfig().grasps.gripper, grip_force=40.0))
+    for wrong, message in ((["--grasp-option", "rank_by=fraction"], "their own flags"),
+                           (["--grasp-option", "side_yaws=many"], "grasp option 'side_yaws=many'")):
+        bad = build_parser().parse_args(["grasp-trials", "--strategies", "oracle", *wrong, "--out", str(tmp_path)])
+        assert bad.func(bad) == 2 and message in capsys.readouterr().err
 
 
 def test_out_of_family_pools_hold_independent_mugs_and_boxes_the_scenes_can_use():

@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -47,6 +47,7 @@ import torch
 
 from pssnet_core.geometry import GridPose, ViewEvidence
 from pssnet_core.inference import CompletionInputError, CompletionResult
+from pssnet_core.options import config_with
 from pssnet_core.spread import BitRows, farthest_point_selection
 
 SAMPLERS: tuple[str, ...] = ("posterior", "checked")
@@ -132,28 +133,13 @@ class CheckedSamplerConfig:
 def checked_config_with(options: Sequence[str], base: CheckedSamplerConfig | None = None) -> CheckedSamplerConfig:
     """``base`` (default: the defaults) with ``NAME=VALUE`` overrides of its fields, as command lines give them
     (``--sampler-option turned_rest_low=0.75``, ``--sampler-option source_shares=0.5,0,0,0.5``): each value is
-    parsed as its field's type (a tuple as comma-separated numbers), and the result is checked as any config is.
+    parsed as its field's type (a tuple as comma-separated numbers, :func:`pssnet_core.options.config_with`), and the
+    result is checked as any config is.
 
     Raises:
         ValueError: an unknown name, a value of the wrong form, or values the config refuses.
     """
-    base = base or CheckedSamplerConfig()
-    kinds = {f.name: type(getattr(base, f.name)) for f in fields(CheckedSamplerConfig)}
-    changes: dict[str, Any] = {}
-    for option in options:
-        name, sep, text = str(option).partition("=")
-        name = name.strip()
-        if not sep or name not in kinds:
-            raise ValueError(f"sampler option {option!r}: expected NAME=VALUE with NAME one of {', '.join(kinds)}")
-        try:
-            if kinds[name] is tuple:
-                changes[name] = tuple(float(v) for v in text.split(","))
-            else:
-                changes[name] = kinds[name](text.strip())
-        except ValueError:
-            wanted = {int: "an integer", float: "a number", tuple: "comma-separated numbers"}[kinds[name]]
-            raise ValueError(f"sampler option {option!r}: {text!r} is not {wanted}") from None
-    return replace(base, **changes)
+    return config_with(base or CheckedSamplerConfig(), options, "sampler option")
 
 
 def _grid_parts(observation: Any) -> tuple[np.ndarray, np.ndarray, GridPose]:

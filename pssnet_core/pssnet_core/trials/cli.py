@@ -7,8 +7,10 @@ import os
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pssnet_core.grasps.config import RANKINGS, GraspConfig
+from pssnet_core.options import config_with
 from pssnet_core.trials import (
     DEFAULT_STRATEGIES,
     HEADLESS_GL,
@@ -18,6 +20,13 @@ from pssnet_core.trials import (
     STRATEGIES,
     VAE_STRATEGIES,
 )
+
+if TYPE_CHECKING:
+    from pssnet_core.trials.run import TrialsConfig
+
+
+#: GraspConfig fields with a flag of their own (``--grasp-option`` refuses them); the seed comes from ``--seed``.
+GRASP_FLAGS = ("rank_by", "observed_points_check", "surface_at_voxel_centres", "seed")
 
 
 def _names(text: str, known: tuple[str, ...], what: str) -> tuple[str, ...]:
@@ -65,6 +74,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    default=GraspConfig.surface_at_voxel_centres,
                    help="the fingers' clearance from the completions' outermost voxels' centres, not their faces "
                         "(GraspConfig.surface_at_voxel_centres; default %(default)s)")
+    p.add_argument("--grasp-option", action="append", default=[], metavar="NAME=VALUE",
+                   help="set one of the planner's other options (pssnet_core.grasps.GraspConfig, e.g. "
+                        "tilted_pitches=20,45,70 or gripper.grip_force=40); repeat for more")
     p.add_argument("--filmstrip-scenes", type=int, default=2, help="scenes per scenario drawn in the filmstrip")
     p.add_argument("--out", type=Path, default=Path("results/grasp_trials"), help="output directory")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -81,25 +93,37 @@ def chosen_strategies(args: argparse.Namespace) -> tuple[str, ...]:
     return (*DEFAULT_STRATEGIES, "vae") if args.vae_checkpoint else DEFAULT_STRATEGIES
 
 
-def run_command(args: argparse.Namespace) -> int:
-    os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo is first imported (pssnet_core.trials)
-    from pssnet_core.inference import CheckpointError, Completer
-    from pssnet_core.trials.run import TrialsConfig, markdown_table, run_trials, summarise
-    from pssnet_core.trials.strategies import Strategist
+def trials_config(args: argparse.Namespace) -> TrialsConfig:
+    """The run's :class:`~pssnet_core.trials.run.TrialsConfig` from the command line (imported here: the module
+    imports MuJoCo, which ``run_command`` must first point at a headless GL).
+
+    Raises:
+        ValueError: a ``--grasp-option`` the planner's config refuses.
+    """
+    from pssnet_core.trials.run import TrialsConfig
 
     checkpoints = {"pssnet": str(args.pssnet_checkpoint or "shipped default"), "vae": str(args.vae_checkpoint or "")}
     config = TrialsConfig(scenarios=args.scenarios, strategies=chosen_strategies(args), trials=args.trials,
                           seed=args.seed, num_samples=args.num_samples, sampler=args.sampler,
-                          sampler_options=tuple(args.sampler_option),
-                          look_threshold=args.look_threshold,
+                          sampler_options=tuple(args.sampler_option), look_threshold=args.look_threshold,
                           filmstrip_scenes=args.filmstrip_scenes, checkpoints=checkpoints)
-    config = replace(config, scenario=replace(config.scenario, objects=args.objects),
-                     grasps=replace(config.grasps, rank_by=args.rank_by,
-                                    observed_points_check=args.observed_points_check,
-                                    surface_at_voxel_centres=args.surface_at_voxel_centres))
+    grasps = config_with(config.grasps, args.grasp_option, "grasp option", refused=GRASP_FLAGS)
+    scenario = replace(config.scenario, objects=args.objects)
     if args.cache_dir is not None:
-        config = replace(config, scenario=replace(config.scenario, cache_dir=args.cache_dir))
+        scenario = replace(scenario, cache_dir=args.cache_dir)
+    return replace(config, scenario=scenario,
+                   grasps=replace(grasps, rank_by=args.rank_by, observed_points_check=args.observed_points_check,
+                                  surface_at_voxel_centres=args.surface_at_voxel_centres))
+
+
+def run_command(args: argparse.Namespace) -> int:
+    os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo is first imported (pssnet_core.trials)
+    from pssnet_core.inference import CheckpointError, Completer
+    from pssnet_core.trials.run import markdown_table, run_trials, summarise
+    from pssnet_core.trials.strategies import Strategist
+
     try:
+        config = trials_config(args)
         if args.trials < 1 or args.num_samples < 1:
             raise ValueError("--trials and --num-samples must be >= 1")
         if set(VAE_STRATEGIES) & set(config.strategies) and args.vae_checkpoint is None:
