@@ -13,9 +13,7 @@ the run predates is off). Results in ``results/second_look/README.md`` and
 from __future__ import annotations
 
 import argparse
-import json
 import os
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +27,7 @@ from pssnet_core.grasps import GraspConfig  # noqa: E402
 from pssnet_core.grasps.config import VoxelDims  # noqa: E402
 from pssnet_core.grasps.lattice import gripper_part_boxes  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
-from pssnet_core.trials.run import TrialsConfig, read_run_records  # noqa: E402
+from pssnet_core.trials.run import config_of_run, read_run_records  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
 from pssnet_core.trials.strategies import Strategist  # noqa: E402
 
@@ -53,12 +51,7 @@ def main() -> None:
     records = {r.index: r for r in read_run_records(args.run) if r.strategy == STRATEGY}
     failed = sorted(i for i, r in records.items() if not r.success)
     lifted = sorted(i for i, r in records.items() if r.success)[:args.successes]
-    # The scenes and planner as the run had them; runs made before a planner switch existed ran without it.
-    settings = json.loads((args.run / "settings.json").read_text())
-    config = TrialsConfig(seed=settings["seed"])
-    config = replace(config, scenario=replace(config.scenario, objects=settings["scenario"]["objects"]),
-                     grasps=replace(config.grasps, **{name: settings["grasps"].get(name, False) for name in
-                                                      ("observed_points_check", "surface_at_voxel_centres")}))
+    config = config_of_run(args.run)  # the scenes and planner as the run had them
     factory = SceneFactory(config.scenario)
     strategist = Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, config.num_samples,
                             config.physics, config.scenario.clutter_margin)

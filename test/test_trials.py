@@ -45,6 +45,7 @@ from pssnet_core.trials.plausible import (
 from pssnet_core.trials.run import (
     TrialRecord,
     TrialsConfig,
+    config_of_run,
     paired_lines,
     read_run_records,
     run_trials,
@@ -325,6 +326,26 @@ def test_the_command_is_registered_with_its_options(tmp_path, capsys):
                            (["--grasp-option", "side_yaws=many"], "grasp option 'side_yaws=many'")):
         bad = build_parser().parse_args(["grasp-trials", "--strategies", "oracle", *wrong, "--out", str(tmp_path)])
         assert bad.func(bad) == 2 and message in capsys.readouterr().err
+
+
+def test_a_runs_config_is_rebuilt_from_its_settings_and_refuses_what_it_cannot_rebuild(tmp_path):
+    tuned = replace(TrialsConfig(strategies=("oracle",), seed=3, sampler_options=("turned_rest_low=0.75",)),
+                    grasps=replace(TrialsConfig().grasps, tilted_pitches=(20.0, 70.0), rank_by="fraction"),
+                    scenario=replace(TrialsConfig().scenario, objects="independent"))
+    (tmp_path / "settings.json").write_text(json.dumps(tuned.fingerprint()))
+    rebuilt = config_of_run(tmp_path)
+    assert rebuilt.fingerprint() == tuned.fingerprint() and rebuilt.grasps == tuned.grasps
+    # A run made before a planner switch existed ran without it.
+    old = tuned.fingerprint()
+    del old["grasps"]["observed_points_check"]
+    (tmp_path / "settings.json").write_text(json.dumps(old))
+    assert config_of_run(tmp_path).grasps.observed_points_check is False
+    for change, named in (({"scenario": {**old["scenario"], "shelf_gap": 0.05}}, "scenario.shelf_gap"),
+                          ({"physics": {**old["physics"], "grip_force": 40.0}}, "physics.grip_force"),
+                          ({"grasps": {**old["grasps"], "collision_penalty": 1}}, "another version")):
+        (tmp_path / "settings.json").write_text(json.dumps({**old, **change}))
+        with pytest.raises(ValueError, match=named):
+            config_of_run(tmp_path)
 
 
 def test_out_of_family_pools_hold_independent_mugs_and_boxes_the_scenes_can_use():

@@ -81,6 +81,49 @@ class TrialsConfig:
         return json.loads(json.dumps(data, default=str))
 
 
+#: Planner switches added after runs were made with them absent (off): a run's settings.json without one ran without it.
+PREDATED_SWITCHES = {"observed_points_check": False, "surface_at_voxel_centres": False}
+
+
+def config_of_run(directory: Path) -> TrialsConfig:
+    """The :class:`TrialsConfig` a run's ``settings.json`` records (the default scene cache; one scene count), for
+    scripts that make a run's choices again. A planner switch the run predates is off (:data:`PREDATED_SWITCHES`).
+
+    Raises:
+        ValueError: the settings hold something this rebuild does not reproduce (a scenario, physics or other
+            setting changed from its default), named in the message.
+    """
+    from pssnet_core.grasps import GripperConfig
+
+    settings = json.loads((directory / "settings.json").read_text())
+    try:
+        grasps = {**PREDATED_SWITCHES, **settings["grasps"]}
+        gripper = GripperConfig(**grasps.pop("gripper"))
+        grasps = GraspConfig(gripper=gripper, **{k: tuple(v) if isinstance(v, list) else v for k, v in grasps.items()})
+        config = TrialsConfig(scenarios=tuple(settings["scenarios"]), strategies=tuple(settings["strategies"]),
+                              seed=settings["seed"], num_samples=settings["num_samples"], sampler=settings["sampler"],
+                              sampler_options=tuple(settings.get("sampler_options", ())),
+                              look_threshold=settings.get("look_threshold", LOOK_MIN_SEPARABILITY), grasps=grasps,
+                              scenario=ScenarioConfig(objects=settings["scenario"]["objects"]),
+                              checkpoints=settings["checkpoints"])
+    except (KeyError, TypeError) as error:  # a setting the run predates, or one the code no longer has
+        raise ValueError(f"{directory}: settings.json from another version of the trials ({error})") from None
+    rebuilt = config.fingerprint()
+    for name in PREDATED_SWITCHES:
+        if name not in settings["grasps"]:
+            rebuilt["grasps"].pop(name)
+    differing = []
+    for key in sorted(set(rebuilt) | set(settings)):
+        mine, theirs = rebuilt.get(key), settings.get(key)
+        if isinstance(mine, dict) and isinstance(theirs, dict):
+            differing += [f"{key}.{k}" for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
+        elif mine != theirs:
+            differing.append(key)
+    if differing:
+        raise ValueError(f"{directory}: settings {', '.join(differing)} are not the defaults this rebuild assumes")
+    return config
+
+
 @dataclass
 class TrialRecord:
     """One strategy on one scene."""
