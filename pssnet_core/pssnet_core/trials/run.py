@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from pssnet_core.grasps import GraspConfig
+from pssnet_core.grasps import GraspConfig, GripperConfig
 from pssnet_core.trials import DEFAULT_STRATEGIES, LOOK_MIN_SEPARABILITY, SCENARIOS
 from pssnet_core.trials.collision import Faithfulness
 from pssnet_core.trials.physics import OUTCOMES, PhysicsConfig, PhysicsScene, TrialOutcome, build_model, run_trial
@@ -93,8 +93,6 @@ def config_of_run(directory: Path) -> TrialsConfig:
         ValueError: the settings hold something this rebuild does not reproduce (a scenario, physics or other
             setting changed from its default), named in the message.
     """
-    from pssnet_core.grasps import GripperConfig
-
     settings = json.loads((directory / "settings.json").read_text())
     try:
         grasps = {**PREDATED_SWITCHES, **settings["grasps"]}
