@@ -25,7 +25,7 @@ from scipy.stats import spearmanr
 from pssnet_core.inference import Completer
 from pssnet_core.next_view import NextViewConfig, rank_views, scaled_intrinsics
 from pssnet_core.pipeline import CompletionPipeline, MoreView, PipelineConfig, PipelineInputError
-from pssnet_core.trials.run import TrialsConfig
+from pssnet_core.trials.run import TrialsConfig, scene_seed
 from pssnet_core.trials.scenarios import SceneFactory, clutter_depth, look_cameras, render_look
 
 
@@ -53,7 +53,7 @@ def main() -> None:
     rows = []
     for index in range(args.scenes):
         scene = factory.scene(args.scenario, index, args.seed)
-        seed = int(np.random.default_rng([args.seed, index]).integers(2**31 - 1))
+        seed = scene_seed(args.seed, index)
         pipeline.config = pipeline.with_config(up_vector=tuple(float(u) for u in scene.view.up), seed=seed)
         view, camera = scene.view, scene.view.camera_pose
         first = pipeline.run(view.depth, view.mask, view.intrinsics, compute_grasps=False)

@@ -27,7 +27,7 @@ from pssnet_core.grasps import GraspConfig  # noqa: E402
 from pssnet_core.grasps.config import VoxelDims  # noqa: E402
 from pssnet_core.grasps.lattice import gripper_part_boxes  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
-from pssnet_core.trials.run import config_of_run, read_run_records  # noqa: E402
+from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
 from pssnet_core.trials.strategies import Strategist  # noqa: E402
 
@@ -59,7 +59,7 @@ def main() -> None:
     for label, indices in (("failed", failed), ("lifted", lifted)):
         for index in indices:
             scene = factory.scene(records[index].scenario, index, config.seed)
-            seed = int(np.random.default_rng([config.seed, index]).integers(2**31 - 1))
+            seed = scene_seed(config.seed, index)
             first = strategist._complete("pssnet", scene, seed)
             look = strategist._second_look("pssnet", scene, first, seed)
             choice = strategist.choose(scene, (STRATEGY,), seed)[STRATEGY]

@@ -29,7 +29,7 @@ os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
 from pssnet_core.grasps import check_grasps  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
 from pssnet_core.trials.physics import run_trial  # noqa: E402
-from pssnet_core.trials.run import config_of_run, read_run_records  # noqa: E402
+from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
 from pssnet_core.trials.strategies import Strategist  # noqa: E402
 
@@ -68,7 +68,7 @@ def main() -> None:
     rows = []
     for index, record in sorted(records.items()):
         scene = factory.scene(record.scenario, index, config.seed)
-        seed = int(np.random.default_rng([config.seed, index]).integers(2**31 - 1))
+        seed = scene_seed(config.seed, index)
         result = strategist._complete("pssnet", scene, seed)
         truth = scene.ground_truth(result.observation.pose)[None]
         grasps = strategist._plan(truth, result, scene, seed)

@@ -81,6 +81,12 @@ class TrialsConfig:
         return json.loads(json.dumps(data, default=str))
 
 
+def scene_seed(seed: int, index: int) -> int:
+    """The seed of scene ``index``'s latent noise, candidates and random pick in a run with master ``seed``: what
+    a script that makes a run's choices again must pass to ``Strategist.choose``."""
+    return int(np.random.default_rng([seed, index]).integers(2**31 - 1))
+
+
 #: Planner switches added after runs were made with them absent (off): a run's settings.json without one ran without it.
 PREDATED_SWITCHES = {"observed_points_check": False, "surface_at_voxel_centres": False}
 
@@ -382,7 +388,7 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
                 if not todo and not film:
                     continue
                 scene = factory.scene(scenario, index, config.seed)
-                seed = int(np.random.default_rng([config.seed, index]).integers(2**31 - 1))
+                seed = scene_seed(config.seed, index)
                 choices = strategist.choose(scene, config.strategies if film else todo, seed)
                 renderer = None
                 if film:
