@@ -570,6 +570,30 @@ def test_the_share_of_the_weight_held_is_half_the_tie_break():
     assert actual[0] == pytest.approx(with_none[0] + 0.5 * checks.resistance[0, 0])
 
 
+def test_weight_shares_are_the_weighted_mean_share_held_over_the_completions_held():
+    from pssnet_core.grasps.scoring import weight_shares
+
+    occ = np.concatenate([_mug_like(), _mug_like(body=False)])  # the handle with and without the heavy body
+    candidates = _rod_pinch(np.array([0.0, 1.0, 0.0]))
+    checks = check_grasps(candidates, occ, identity_pose(), 2.0, CONFIG)
+    assert checks.holds[0].all()
+    twisted, alone = checks.resistance[0]
+    assert twisted < 0.5 and alone == 1.0
+    assert weight_shares(checks)[0] == pytest.approx((twisted + alone) / 2)
+    assert weight_shares(checks, np.array([0.8, 0.2]))[0] == pytest.approx(0.8 * twisted + 0.2 * alone)
+    # Only the completions the grasp holds for count; a grasp that holds for none holds no share.
+    first_only = dataclasses.replace(checks, contains=np.array([[True, False]]))
+    assert weight_shares(first_only, np.array([0.8, 0.2]))[0] == pytest.approx(twisted)
+    assert weight_shares(dataclasses.replace(checks, contains=np.zeros((1, 2), bool)))[0] == 0.0
+    # The planner reports them per ranked grasp.
+    grasps = plan_grasps(occ, identity_pose(), config=GraspConfig(max_candidates=100), support_z=2.0,
+                         weights=np.array([0.8, 0.2]))
+    recheck = check_grasps(grasps.grid, occ, identity_pose(), 2.0, CONFIG)
+    np.testing.assert_allclose(grasps.weight_shares, weight_shares(recheck, np.array([0.8, 0.2])))
+    assert np.all(grasps.weight_shares[grasps.scores == 0] == 0) and np.any(grasps.weight_shares > 0)
+    np.testing.assert_array_equal(grasps.top(3).weight_shares, grasps.weight_shares[:3])
+
+
 def test_observed_points_inside_a_finger_or_the_palm_are_found():
     width = 5.0 + 2 * CLEAR
     grasp = top_grasp(12.5, 16.0, 12.5, width)  # fingers from z = 12.5 (tips) up to 12.5 + FL, closing along x

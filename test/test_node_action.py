@@ -96,6 +96,7 @@ def test_goal_reports_each_step_and_returns_the_services_answer(node, action, sc
         np.testing.assert_array_equal(pointcloud2_to_numpy(ours)[0], pointcloud2_to_numpy(theirs)[0])
     assert list(result.sample_weights) == list(response.sample_weights)
     assert len(result.grasps.poses) > 0 and list(result.grasp_scores) == list(response.grasp_scores)
+    assert list(result.grasp_weight_shares) == list(response.grasp_weight_shares)
     assert result.message.split(", seed")[0] == response.message.split(", seed")[0]
 
 

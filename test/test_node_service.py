@@ -118,13 +118,17 @@ def test_grasps_are_returned_best_first_in_the_request_frame(ros, service, scene
     response = call(ros, service, make_request(scene, stamped_header(77), num_samples=6, compute_grasps=True))
     assert response.success, response.message
     n = len(response.grasps.poses)
-    assert len(response.grasp_scores) == n == len(response.grasp_widths) and n <= 10  # grasp_top_k
+    assert len(response.grasp_scores) == n == len(response.grasp_widths) == len(response.grasp_weight_shares)
+    assert n <= 10  # grasp_top_k
     assert response.grasps.header.stamp.sec == 77 and response.grasps.header.frame_id == "camera_depth_optical_frame"
     # Best first by the expected grip (GraspConfig.rank_by), which the response does not carry: the scores need not
     # be sorted, but a grasp that holds for no sample never precedes one that holds for some.
     held = [s > 0.0 for s in response.grasp_scores]
     assert held == sorted(held, reverse=True)
     assert all(0.0 <= s <= 1.0 for s in response.grasp_scores) and all(0 < w <= 0.08 for w in response.grasp_widths)
+    # A share of the weight in [0, 1]; a grasp holding for no sample holds none of it.
+    assert all(0.0 <= share <= 1.0 and (h or share == 0.0)
+               for share, h in zip(response.grasp_weight_shares, held, strict=True))
     for pose in response.grasps.poses:
         q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
         assert abs(np.linalg.norm(q) - 1.0) < 1e-6

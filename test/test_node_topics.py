@@ -203,6 +203,7 @@ def check_outputs(out: dict[str, list], stamps: list[int], count: int) -> None:
         # one gripper outline per published grasp, after the DELETEALL that clears the previous set's
         assert [m.action for m in markers.markers] == [Marker.DELETEALL] + [Marker.ADD] * len(candidates.poses)
         assert all(m.header.frame_id == "camera_depth_optical_frame" for m in markers.markers)
+        assert len(candidates.weight_shares) == len(candidates.scores) == len(candidates.poses)
 
 
 def check_accounting(d: dict[str, int], elapsed_s: float) -> None:

@@ -242,6 +242,7 @@ def test_the_oracle_lifts_a_box_in_full_view(factory, strategist):
     assert scene.physics.shape.identity.family == "box" and not scene.physics.clutter
     choice = strategist.choose(scene, ("oracle",), seed=0)["oracle"]
     assert choice.pose is not None and choice.score == 1.0
+    assert choice.notes["weight_share"] == 1.0  # a box gripped across its faces: the pads hold all its weight
     assert run_trial(scene.physics, choice.pose, choice.width).outcome == "success"
 
 
@@ -254,6 +255,8 @@ def test_a_short_run_writes_records_summary_and_filmstrip_and_resumes(factory, s
     assert {r.outcome for r in records} <= {"success", "no_grasp", "collision", "missed", "slipped"}
     lines = (tmp_path / "records.jsonl").read_text().splitlines()
     assert len(lines) == len(records) and json.loads(lines[0])["scenario"] == "box_slit"
+    # The chosen grasp's weight share is recorded with every grasp, and only with one.
+    assert all((r.outcome == "no_grasp") != (0.0 <= r.notes.get("weight_share", -1.0) <= 1.0) for r in records)
     summary = (tmp_path / "summary.md").read_text()
     assert "| control | oracle | 1 |" in summary and "- box (" in summary
     assert (tmp_path / "filmstrip_box_slit.png").stat().st_size > 10_000
@@ -448,7 +451,7 @@ def test_a_second_look_comes_from_where_the_samples_disagree_and_sees_the_box(fa
                        look_threshold=0.0)
     looked = eager.choose(unsure, ("pssnet_second_look",), seed=0)["pssnet_second_look"]
     assert looked.notes["look_separability"] == kept["pssnet_second_look"].notes["look_separability"]
-    assert "look_azimuth_deg" in looked.notes
+    assert "look_azimuth_deg" in looked.notes and "weight_share" in looked.notes
     with pytest.raises(ValueError, match="look_threshold"):
         Strategist(strategist.pssnet, None, config.grasps, 4, config.physics, 0.01, look_threshold=1.5)
 

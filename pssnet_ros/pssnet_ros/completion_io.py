@@ -151,13 +151,14 @@ def complete_messages(pipeline: CompletionPipeline, depth_msg: Image, mask_msg: 
     return result, depth_msg.header
 
 
-def grasp_fields(result: PipelineResult) -> tuple[list[Pose], list[float], list[float]]:
-    """Poses, scores and widths of the result's grasps (empty lists when grasps were not computed)."""
+def grasp_fields(result: PipelineResult) -> tuple[list[Pose], list[float], list[float], list[float]]:
+    """Poses, scores, widths and weight shares of the result's grasps (empty lists when grasps were not computed)."""
     grasps = result.grasps
     if grasps is None or len(grasps.scores) == 0:
-        return [], [], []
+        return [], [], [], []
     poses = [conversions.matrix_to_pose(m) for m in grasps.poses]
-    return poses, [float(s) for s in grasps.scores], [float(w) for w in grasps.widths]
+    return (poses, [float(s) for s in grasps.scores], [float(w) for w in grasps.widths],
+            [float(share) for share in grasps.weight_shares])
 
 
 def score_colour(score: float) -> ColorRGBA:
@@ -188,12 +189,13 @@ def output_messages(result: PipelineResult, header: Header, gripper: GripperConf
     """The node's continuous-mode publications for one result, all carrying ``header``; ``gripper`` draws the
     grasp markers (the pipeline's ``config.grasps.gripper``)."""
     points, index = result.merged()
-    poses, scores, widths = grasp_fields(result)
+    poses, scores, widths, shares = grasp_fields(result)
     return OutputMessages(
         completions=conversions.points_to_pointcloud2(points, header, index),
         known_occupied=conversions.points_to_pointcloud2(result.known_occupied, header),
         grasps=PoseArray(header=header, poses=poses),
-        grasp_candidates=GraspCandidates(header=header, poses=poses, scores=scores, widths=widths),
+        grasp_candidates=GraspCandidates(header=header, poses=poses, scores=scores, widths=widths,
+                                         weight_shares=shares),
         grasp_markers=grasp_markers(poses, scores, widths, header, gripper))
 
 
@@ -206,9 +208,9 @@ def fill_response(response: SampleCompletions.Response, result: PipelineResult,
     response.known_occupied = conversions.points_to_pointcloud2(result.known_occupied, header)
     response.completions = [conversions.points_to_pointcloud2(c, header) for c in result.completions]
     response.sample_weights = [float(w) for w in result.weights]
-    poses, scores, widths = grasp_fields(result)
+    poses, scores, widths, shares = grasp_fields(result)
     response.grasps = PoseArray(header=header, poses=poses)
-    response.grasp_scores, response.grasp_widths = scores, widths
+    response.grasp_scores, response.grasp_widths, response.grasp_weight_shares = scores, widths, shares
     response.candidate_view_scores = [float(s) for s in result.view_scores]
     response.success = True
     return response
@@ -227,6 +229,7 @@ def outputs_from_response(response: SampleCompletions.Response, gripper: Gripper
         known_occupied=response.known_occupied,
         grasps=PoseArray(header=header, poses=poses),
         grasp_candidates=GraspCandidates(header=header, poses=poses, scores=list(response.grasp_scores),
-                                         widths=list(response.grasp_widths)),
+                                         widths=list(response.grasp_widths),
+                                         weight_shares=list(response.grasp_weight_shares)),
         grasp_markers=grasp_markers(poses, list(response.grasp_scores), list(response.grasp_widths), header,
                                     gripper))

@@ -300,7 +300,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"[demo]   samples: {len(response.completions)}; voxel {response.voxel_size * 1000:.2f} mm; "
               f"observed voxels: {response.known_occupied.width}; points per sample: min {min(sizes)}, "
               f"median {int(np.median(sizes))}, max {max(sizes)}")
-        best = f", top grasp's score {response.grasp_scores[0]:.2f}" if len(response.grasp_scores) else ""
+        best = (f", top grasp's score {response.grasp_scores[0]:.2f}, weight share "
+                f"{response.grasp_weight_shares[0]:.2f}" if len(response.grasp_scores) else "")
         print(f"[demo]   grasps: {len(response.grasps.poses)}{best}")
         print(f"[demo]   service latency (request -> response, {len(latencies)} calls): median "
               f"{np.median(latencies) * 1000:.0f} ms, min {np.min(latencies) * 1000:.0f} ms")

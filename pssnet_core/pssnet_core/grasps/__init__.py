@@ -52,9 +52,11 @@ with ``grip_force``, holds the weight's part across the closing axis and its mom
 (coefficient ``friction``) over its contact patch, up to the soft-finger limit ``(f / mu F)^2 + (tau / (mu F r))^2
 <= 1`` (r = the patch's mean radius), and the moment across the axis by the spread of its pressure over the patch,
 both at once while their shares of those limits sum to <= 1; a load along the closing axis is not held by
-force-controlled fingers (``holds_axial_load``). A pinch of a thin handle touches a narrow strip while the mug's
-weight hangs 6-7 cm away about the closing axis: in the grasp trials such pinches slipped by turning about the
-closing axis, and those with the larger twist per patch radius slipped more (records of ``grasp_trials/planner2``).
+force-controlled fingers (``holds_axial_load``). ``GraspSet.weight_shares`` reports it per grasp, the mean over the
+completions the grasp holds for (the service's ``grasp_weight_shares``). A pinch of a thin handle touches a narrow
+strip while the mug's weight hangs 6-7 cm away about the closing axis: in the grasp trials such pinches slipped by
+turning about the closing axis, and those with the larger twist per patch radius slipped more (records of
+``grasp_trials/planner2``).
 Grasps that hold the whole weight (body grasps on flat faces) keep the order of the other half. Pad contact is the
 mean, over the completions the grasp holds for, of the fraction of the two finger pads (finger-width x finger-length
 faces, sampled on the lattice) that touch the object when the fingers close on it: a pad cell touches when the

@@ -13,16 +13,18 @@ from pssnet_core.grasps.inputs import check_occupancy, check_points, check_weigh
 from pssnet_core.grasps.lattice import PackedGrids
 from pssnet_core.grasps.results import KIND_NAMES, GraspCandidates, GraspSet, SingleCompletionChoice
 from pssnet_core.grasps.scoring import (
+    check_grasps,
     checks_from_packed,
     expected_grip,
     holds_and_secondary,
     observed_point_hits,
-    score_grasps,
+    weight_shares,
 )
 
 
 def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
-                  support_z: float, weights: np.ndarray | None = None, grip: np.ndarray | None = None) -> GraspSet:
+                  support_z: float, shares: np.ndarray, weights: np.ndarray | None = None,
+                  grip: np.ndarray | None = None) -> GraspSet:
     if not holds.shape[1]:
         scores = np.zeros(len(candidates))
     elif weights is None:
@@ -40,7 +42,8 @@ def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.
     kinds = np.array([KIND_NAMES[i] for i in c.kinds], dtype=object)
     return GraspSet(poses=poses, widths=c.widths * pose.voxel_size, scores=scores[order], holds=holds[order],
                     secondary=secondary[order], kinds=kinds, grid=c, support_z=float(support_z),
-                    voxel_size=float(pose.voxel_size), grip=None if grip is None else grip[order])
+                    voxel_size=float(pose.voxel_size), weight_shares=shares[order],
+                    grip=None if grip is None else grip[order])
 
 
 def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
@@ -85,7 +88,8 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
         checks.palm_hit[palm] = True
     holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
     grip = expected_grip(checks, weights) if config.rank_by == "expected_grip" else None
-    return _to_grasp_set(candidates, holds, secondary, pose, support_z, weights, grip)
+    return _to_grasp_set(candidates, holds, secondary, pose, support_z, weight_shares(checks, weights), weights,
+                         grip)
 
 
 def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, points: np.ndarray | None = None,
@@ -107,10 +111,11 @@ def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, 
     alone = plan_grasps(occupancy[index:index + 1], pose, points, config, support_z=support_z)
     if len(alone) == 0 or alone.scores[0] <= 0.0:
         empty = _to_grasp_set(GraspCandidates.empty(), np.zeros((0, occupancy.shape[0]), bool), np.zeros(0),
-                              pose, support_z)
+                              pose, support_z, np.zeros(0))
         return SingleCompletionChoice(index=index, grasp=empty, score_alone=0.0, score_all=0.0)
     best = alone.grid.subset(np.array([0]))
-    holds, secondary = score_grasps(best, occupancy, pose, support_z, config)
-    grasp = _to_grasp_set(best, holds, secondary, pose, support_z)
+    checks = check_grasps(best, occupancy, pose, support_z, config)
+    holds, secondary = holds_and_secondary(checks, best, config, pose.voxel_size)
+    grasp = _to_grasp_set(best, holds, secondary, pose, support_z, weight_shares(checks))
     return SingleCompletionChoice(index=index, grasp=grasp, score_alone=float(alone.scores[0]),
                                   score_all=float(grasp.scores[0]))

@@ -337,6 +337,16 @@ def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config
     return holds, 0.5 * mean_over_held(checks.resistance) + 0.5 * contact_term
 
 
+def weight_shares(checks: GraspChecks, weights: np.ndarray | None = None) -> np.ndarray:
+    """(K,) the mean share of the weight each grasp's pads hold, over the completions it holds for (``weights``:
+    (S,) summing to 1; None: alike); 0 where it holds for none (``GraspSet.weight_shares``)."""
+    held = checks.holds.astype(np.float64)
+    if weights is not None:
+        held = held * weights
+    total = held.sum(axis=1)
+    return np.where(total > 0, (held * checks.resistance).sum(axis=1) / np.where(total > 0, total, 1.0), 0.0)
+
+
 def expected_grip(checks: GraspChecks, weights: np.ndarray | None = None) -> np.ndarray:
     """(K,) the expected grip of each grasp over the completions (``GraspConfig.rank_by = "expected_grip"``).
 

@@ -74,7 +74,8 @@ class Choice:
         score: fraction of the strategy's shapes the grasp holds for (0 without a grasp).
         kind: "top" or "side" ("" without a grasp).
         candidates: candidates the strategy ranked (after the clutter filter).
-        notes: what else the strategy did, for the records (where a second look came from).
+        notes: what else the strategy did, for the records: the grasp's ``weight_share``
+            (``GraspSet.weight_shares``), where a second look came from.
     """
 
     strategy: str
@@ -149,7 +150,8 @@ class Strategist:
         if index is None or len(grasps) == 0 or grasps.scores[index] <= 0.0:
             return Choice(name, None, candidates=len(grasps))
         return Choice(name, camera_pose @ grasps.poses[index], float(grasps.widths[index]),
-                      float(grasps.scores[index]), str(grasps.kinds[index]), len(grasps))
+                      float(grasps.scores[index]), str(grasps.kinds[index]), len(grasps),
+                      {"weight_share": round(float(grasps.weight_shares[index]), 3)})
 
     def _second_look(self, model: str, scene: TrialScene, result: PipelineResult, seed: int) -> SecondLook:
         """Where ``model``'s samples of the first view (``result``) say to look from, and both views completed by it
@@ -214,11 +216,11 @@ class Strategist:
                 else:
                     both = model_look.result
                     choice = self._choice(name, self._plan(both.occupancy, both, scene, seed, both.weights), 0, camera)
-                choices[name] = replace(choice, notes={**model_look.notes, "first_score": first_score})
+                choices[name] = replace(choice, notes={**choice.notes, **model_look.notes, "first_score": first_score})
             elif name == "one_completion_second_look":
                 seen = look.result if look.result is not None else result
                 choice = self._choice(name, self._plan(posterior_mean(self.pssnet, seen), seen, scene, seed), 0, camera)
-                choices[name] = replace(choice, notes=dict(look.notes))
+                choices[name] = replace(choice, notes={**choice.notes, **look.notes})
             elif name == "random":
                 holding = np.flatnonzero(pssnet_grasps.scores > 0.0)
                 rng = np.random.default_rng([seed, zlib.crc32(b"random")])
