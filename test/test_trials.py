@@ -45,6 +45,7 @@ from pssnet_core.trials.plausible import (
 from pssnet_core.trials.run import (
     TrialRecord,
     TrialsConfig,
+    calibration_lines,
     config_of_run,
     paired_lines,
     read_run_records,
@@ -259,6 +260,7 @@ def test_a_short_run_writes_records_summary_and_filmstrip_and_resumes(factory, s
     assert all((r.outcome == "no_grasp") != (0.0 <= r.notes.get("weight_share", -1.0) <= 1.0) for r in records)
     summary = (tmp_path / "summary.md").read_text()
     assert "| control | oracle | 1 |" in summary and "- box (" in summary
+    assert "| box_slit, pssnet: bin |" in summary and "| weight share 0.9-1 |" in summary
     assert (tmp_path / "filmstrip_box_slit.png").stat().st_size > 10_000
     # Run again: nothing new to do, the records stay as they were.
     assert len(run_trials(config, strategist, tmp_path, progress=False)) == len(records)
@@ -283,6 +285,29 @@ def test_paired_comparison_counts_the_scenes_only_one_strategy_lifted():
     # 8 scenes only PSSNet lifted, none only the other: two-sided sign test p = 2 / 2^8.
     assert "one_completion +8/-0 (p=0.0078)" in line and "oracle +0/-0 (p=1)" in line
     assert paired_lines(records, ("box_slit",), ("one_completion", "oracle")) == []
+
+
+def test_the_calibration_table_bins_the_chosen_grasps_by_score_and_weight_share():
+    def record(index, outcome, score, share=None):
+        notes = {} if share is None else {"weight_share": share}
+        return TrialRecord("mug_hidden_handle", index, "pssnet", outcome, score, "side", 0.03, 10, 0.0, 0.0, "", notes)
+
+    records = [record(0, "success", 1.0, 0.95), record(1, "slipped", 0.95, 0.6), record(2, "collision", 0.3, 0.92),
+               record(3, "no_grasp", 0.0), record(4, "missed", 0.6), record(5, "success", 0.2, 1.0)]
+    lines = calibration_lines(records, "mug_hidden_handle", "pssnet")
+    assert lines[0] == "| mug_hidden_handle, pssnet: bin | grasps | lifted | collision | missed | slipped |"
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in lines[2:]}
+    # no_grasp is left out; a score or share of exactly 1 falls in the top bin.
+    assert rows["score 0-0.5"] == "| score 0-0.5 | 2 | 1 (50 %) | 1 | 0 | 0 |"
+    assert rows["score 0.5-0.7"] == "| score 0.5-0.7 | 1 | 0 (0 %) | 0 | 1 | 0 |"
+    assert rows["score 0.9-1"] == "| score 0.9-1 | 2 | 1 (50 %) | 0 | 0 | 1 |"
+    # The weight-share rows count only the records that carry one (record 4 does not).
+    assert rows["weight share 0.9-1"] == "| weight share 0.9-1 | 3 | 2 (67 %) | 1 | 0 | 0 |"
+    assert rows["weight share 0.5-0.7"] == "| weight share 0.5-0.7 | 1 | 0 (0 %) | 0 | 0 | 1 |"
+    assert len(lines) == 2 + 4 + 4
+    # Runs recorded before the weight share: score rows only.
+    old = [replace(r, notes={}) for r in records]
+    assert len(calibration_lines(old, "mug_hidden_handle", "pssnet")) == 2 + 4
 
 
 def test_wilson_interval():

@@ -232,6 +232,33 @@ def markdown_table(summaries: list[Summary]) -> str:
     return "\n".join(lines)
 
 
+#: Bin edges of :func:`calibration_lines` (the last bin includes 1).
+CALIBRATION_BINS = (0.0, 0.5, 0.7, 0.9, 1.0)
+
+
+def calibration_lines(records: list[TrialRecord], scenario: str, strategy: str) -> list[str]:
+    """A markdown table of how the chosen grasp's score and weight share foretold the outcome (one strategy in one
+    scenario): its trials with a grasp binned by the grasp's score, then by its weight share (``notes.weight_share``,
+    recorded since stop 47; those rows only where recorded), with how many lifted the object and how the rest failed."""
+    chosen = [r for r in records if r.scenario == scenario and r.strategy == strategy and r.outcome != "no_grasp"]
+    failures = tuple(c for c in CAUSES if c != "no_grasp")
+    lines = [f"| {scenario}, {strategy}: bin | grasps | lifted | " + " | ".join(failures) + " |",
+             "|---|---:|---:|" + "---:|" * len(failures)]
+    shared = [r for r in chosen if "weight_share" in r.notes]
+    for label, rated, value in (("score", chosen, lambda r: r.score),
+                                ("weight share", shared, lambda r: float(r.notes["weight_share"]))):
+        if not rated:
+            continue
+        for lo, hi in zip(CALIBRATION_BINS[:-1], CALIBRATION_BINS[1:], strict=True):
+            top = hi == CALIBRATION_BINS[-1]
+            cell = [r for r in rated if lo <= value(r) < hi or (top and value(r) == hi)]
+            lifted = sum(r.success for r in cell)
+            rate = f" ({100 * lifted / len(cell):.0f} %)" if cell else ""
+            lines.append(f"| {label} {lo:g}-{hi:g} | {len(cell)} | {lifted}{rate} | "
+                         + " | ".join(str(sum(r.outcome == c for r in cell)) for c in failures) + " |")
+    return lines
+
+
 class FrameRenderer:
     """Render callback for :func:`run_trial`: the scene seen from ``view`` (distance m, azimuth and elevation
     degrees of MuJoCo's free camera) around ``lookat``.
@@ -463,6 +490,10 @@ def write_summary(path: Path, config: TrialsConfig, records: list[TrialRecord],
             "Paired on the same scenes, PSSNet against each strategy: +scenes only PSSNet lifted / -scenes only "
             "the other lifted (exact sign test of that split):", "",
             *paired_lines(records, config.scenarios, config.strategies), "",
+            "What the chosen grasp's score (the share of the strategy's shapes it holds for) and weight share (the "
+            "share of the weight its pads hold, over those shapes) said of the outcome, scenes with a grasp:", "",
+            *[line for scenario in config.scenarios for strategy in config.strategies
+              for line in (*calibration_lines(records, scenario, strategy), "")],
             f"Collision shapes (CoACD, threshold {config.scenario.decomposition.threshold}) of the objects used:", "",
             *faithfulness_lines(faithfulness),
             f"- left out of the object pools for an unfaithful collision shape (volume off by more than "
