@@ -95,7 +95,10 @@ def test_units_run_alike_in_process_and_on_ray_with_shared_inputs_put_once(ray_r
         assert np.array_equal(local[unit][0], remote[unit][0])
     assert {pid for _, pid in remote.values()} - {os.getpid()}, "no unit ran in a Ray worker"
     assert len({pid for _, pid in remote.values()}) == WORKERS
-    with pytest.raises(ValueError, match="unit 3 is bad"):  # the unit's own error, as in this process
+    # The unit's own error, as in this process; the tasks still running are left to finish, never cancelled (a
+    # cancel racing a task's completion aborts the driver in Ray 2.60, ray_tasks.TaskRunner._map_ray).
+    monkeypatch.setattr(ray, "cancel", lambda *args, **kwargs: pytest.fail("ray.cancel was called"))
+    with pytest.raises(ValueError, match="unit 3 is bad"):
         list(ray_runner.map(_fail_on_three, units, progress=False))
 
 

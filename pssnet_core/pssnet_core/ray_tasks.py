@@ -153,8 +153,8 @@ class TaskRunner:
             gpus_per_task: GPUs each Ray task reserves (0 for CPU work).
 
         Raises:
-            The unit's own exception (the remote traceback chained to it) when a unit fails; units not yet
-            finished are cancelled.
+            The unit's own exception (the remote traceback chained to it) when a unit fails; no unit is submitted
+            after it, and those already submitted (at most twice the parallelism) finish unread.
         """
         shared = dict(shared or {})
         bar = tqdm(total=done + len(units), initial=done, desc=desc, unit=unit_name, disable=not progress,
@@ -183,20 +183,21 @@ class TaskRunner:
         batch = max(1, window // 8)
         pending: dict[Any, Unit] = {}
         queue = iter(units)
-        try:
-            while True:
-                for unit in queue:
-                    pending[remote.remote(unit, **refs)] = unit
-                    if len(pending) >= window:
-                        break
-                if not pending:
-                    return
-                finished, _ = ray.wait(list(pending), num_returns=min(batch, len(pending)))
-                for ref in finished:
-                    yield pending.pop(ref), self._result(ray, ref)
-        finally:
-            for ref in pending:
-                ray.cancel(ref)
+        # When a unit fails (or the caller stops early) the tasks still in the window are left to finish and their
+        # results dropped, not cancelled: in Ray 2.60 a ray.cancel racing a task's completion aborts the driver
+        # process ("Check failed: it != submissible_tasks_.end() Tried to complete task that was not pending",
+        # task_manager.cc; ray-project/ray#54798 fixed the retry variant of that race). It killed this project's
+        # test run once, in the map whose unit 3 raises. The window bounds the work left running.
+        while True:
+            for unit in queue:
+                pending[remote.remote(unit, **refs)] = unit
+                if len(pending) >= window:
+                    break
+            if not pending:
+                return
+            finished, _ = ray.wait(list(pending), num_returns=min(batch, len(pending)))
+            for ref in finished:
+                yield pending.pop(ref), self._result(ray, ref)
 
     @staticmethod
     def _result(ray: Any, ref: Any) -> Any:
