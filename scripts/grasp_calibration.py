@@ -22,10 +22,10 @@ def main() -> None:
         records = read_run_records(run)
         if not records:
             parser.error(f"{run}: no records")
+        print(f"\n{run}")
         for scenario in sorted({r.scenario for r in records}):
             for strategy in sorted({r.strategy for r in records if r.scenario == scenario}):
-                print(f"\n{run}\n")
-                print("\n".join(calibration_lines(records, scenario, strategy)))
+                print("\n" + "\n".join(calibration_lines(records, scenario, strategy)))
 
 
 if __name__ == "__main__":

@@ -334,7 +334,7 @@ def holds_and_secondary(checks: GraspChecks, candidates: GraspCandidates, config
     # Half the term: the share of the weight the pads hold (1 for every grasp that holds all of it, so those keep
     # the order of the other half among themselves).
     contact_term = 0.6 * mean_over_held(checks.coverage) + 0.2 * margin + 0.2 * balance
-    return holds, 0.5 * mean_over_held(checks.resistance) + 0.5 * contact_term
+    return holds, 0.5 * weight_shares(checks) + 0.5 * contact_term
 
 
 def weight_shares(checks: GraspChecks, weights: np.ndarray | None = None) -> np.ndarray:
