@@ -179,6 +179,31 @@ def test_convex_decomposition_faithfulness_numbers():
                                                  abs=0.002)
 
 
+def test_parallel_runs_caching_the_same_decomposition_do_not_take_each_others_file(tmp_path, monkeypatch):
+    """Two trial runs sharing the CoACD cache decompose the same object: the second writes and renames its cache file
+    between the first's write and rename. With one temporary name for both, the first's rename found no file and its
+    run died (seen with two `grasp-trials` runs side by side)."""
+    brick = trimesh.creation.box(extents=[0.04, 0.06, 0.08])
+    savez = np.savez_compressed
+    other_ran = []
+
+    def savez_then_the_other_run(*args, **kwargs):
+        savez(*args, **kwargs)
+        if not other_ran:
+            other_ran.append(True)
+            with monkeypatch.context() as other:
+                other.setattr(os, "getpid", lambda: -1)  # the other process
+                decompose(brick, cache_dir=tmp_path)
+
+    monkeypatch.setattr(np, "savez_compressed", savez_then_the_other_run)
+    parts = decompose(brick, cache_dir=tmp_path)
+    assert other_ran and len(parts) >= 1
+    monkeypatch.setattr(np, "savez_compressed", savez)
+    assert len(list(tmp_path.iterdir())) == 1  # one cache file, no temporary left behind
+    cached = decompose(brick, cache_dir=tmp_path)
+    assert len(cached) == len(parts) and np.allclose(cached[0].vertices, parts[0].vertices)
+
+
 @pytest.mark.slow
 def test_coacd_keeps_the_mug_volume_and_its_handle_hole(tmp_path):
     mug = make_shape("mug", 2000002)

@@ -48,10 +48,15 @@ def _shard_paths(root: Path, shard_id: int) -> tuple[Path, Path]:
     return base.with_suffix(".npz"), Path(f"{base}.images.npz")
 
 
-def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
+def write_npz_atomically(path: str | Path, arrays: dict[str, np.ndarray], compressed: bool = True) -> None:
+    """Writes ``arrays`` to ``path`` (.npz, its folder made if needed) through a temporary file of this process's
+    own and a rename, so that a reader never sees half a file and processes writing the same file (parallel runs
+    sharing a cache) never take each other's temporary file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as handle:
-        np.savez_compressed(handle, **arrays)
+        (np.savez_compressed if compressed else np.savez)(handle, **arrays)
     os.replace(tmp, path)
 
 
@@ -113,8 +118,8 @@ def write_shard(root: str | Path, shard_id: int, samples: Sequence[dict[str, Any
             side[key] = np.concatenate([v.reshape(-1) for v in values])
             side[f"{key}__shapes"] = np.array([v.shape for v in values], dtype=np.int64)
     # The images file is written first, so a grid file on disk always has its images beside it.
-    _atomic_savez(images_path, side)
-    _atomic_savez(grids_path, main)
+    write_npz_atomically(images_path, side)
+    write_npz_atomically(grids_path, main)
 
 
 def read_shard_records(root: str | Path, shard_id: int) -> list[dict[str, Any]]:
@@ -167,7 +172,7 @@ def write_twins(root: str | Path, shard_id: int, twins: Sequence[SampleTwins | N
         azimuth[row] = sample.azimuth_deg
     path = twins_path(root, shard_id)
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_savez(path, {"occupancy": packed, "occupancy__shape": np.array(shape, dtype=np.int64), "box": box,
+    write_npz_atomically(path, {"occupancy": packed, "occupancy__shape": np.array(shape, dtype=np.int64), "box": box,
                          "azimuth_deg": azimuth, "has_twins": np.array([t is not None for t in twins], dtype=bool)})
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -34,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from pssnet_core.data.store import write_npz_atomically
 from pssnet_core.evaluation.observation_model import (
     DepthView,
     MeshRaycaster,
@@ -281,16 +281,11 @@ class PlausibleSets:
         return {int(i): len(self.members(int(i), delta, outlier_fraction)) for i in self.references}
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as handle:
-            np.savez_compressed(handle, deltas=np.array(self.deltas), references=self.references,
-                                object_pixels=self.object_pixels, ref=self.ref, other=self.other,
-                                transforms=self.transforms, violations=self.violations,
-                                allowance=np.array([self.outlier_count, self.outlier_fraction, self.record_fraction]),
-                                stats=np.array(json.dumps(self.stats)))
-        os.replace(tmp, path)
+        write_npz_atomically(path, {
+            "deltas": np.array(self.deltas), "references": self.references, "object_pixels": self.object_pixels,
+            "ref": self.ref, "other": self.other, "transforms": self.transforms, "violations": self.violations,
+            "allowance": np.array([self.outlier_count, self.outlier_fraction, self.record_fraction]),
+            "stats": np.array(json.dumps(self.stats))})
 
     @classmethod
     def load(cls, path: str | Path) -> PlausibleSets:
@@ -430,12 +425,7 @@ def _write_part(parts_dir: Path, outputs: Sequence[dict[str, Any]], deltas: int)
         "transforms": np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4, 4),
         "violations": np.array([r[3] for r in rows], dtype=np.int64).reshape(-1, deltas),
     }
-    parts_dir.mkdir(parents=True, exist_ok=True)
-    path = parts_dir / f"part_{outputs[0]['i']:09d}.npz"
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as handle:
-        np.savez(handle, **arrays)
-    os.replace(tmp, path)
+    write_npz_atomically(parts_dir / f"part_{outputs[0]['i']:09d}.npz", arrays, compressed=False)
 
 
 def _read_parts(parts_dir: Path) -> dict[int, dict[str, Any]]:

@@ -28,6 +28,7 @@ import trimesh
 from scipy.spatial import ConvexHull
 
 from pssnet_core.data.scenes import ObjectScene
+from pssnet_core.data.store import write_npz_atomically
 from pssnet_core.shapes import Shape
 
 DEFAULT_CACHE_DIR = Path.home() / ".cache" / "pssnet" / "coacd"
@@ -94,13 +95,10 @@ def decompose(mesh: trimesh.Trimesh, config: DecompositionConfig | None = None,
                           preprocess_mode=config.preprocess, seed=config.seed)
     parts = [ConvexPart(np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)) for v, f in raw]
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {"count": np.array(len(parts))}
         for i, part in enumerate(parts):
             arrays[f"v{i}"], arrays[f"f{i}"] = part.vertices, part.faces
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, **arrays)
-        tmp.replace(path)  # atomic: parallel runs never read half a file
+        write_npz_atomically(path, arrays)  # parallel runs decomposing the same mesh each write their own temp file
     return parts
 
 
