@@ -170,10 +170,9 @@ def write_twins(root: str | Path, shard_id: int, twins: Sequence[SampleTwins | N
         packed[row] = np.packbits(sample.occupancy.reshape(per_view, -1), axis=1)
         box[row] = sample.box
         azimuth[row] = sample.azimuth_deg
-    path = twins_path(root, shard_id)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_npz_atomically(path, {"occupancy": packed, "occupancy__shape": np.array(shape, dtype=np.int64), "box": box,
-                         "azimuth_deg": azimuth, "has_twins": np.array([t is not None for t in twins], dtype=bool)})
+    write_npz_atomically(twins_path(root, shard_id), {
+        "occupancy": packed, "occupancy__shape": np.array(shape, dtype=np.int64), "box": box, "azimuth_deg": azimuth,
+        "has_twins": np.array([t is not None for t in twins], dtype=bool)})
 
 
 def finalize(root: str | Path, meta: dict[str, Any]) -> int:
