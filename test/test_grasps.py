@@ -504,6 +504,29 @@ def test_pads_outside_the_friction_cone_squeeze_a_body_out(yaw_deg: float, outsi
     assert checks.holds[0, 0] != outside
 
 
+@pytest.mark.parametrize("tip_depth", [2.0, 2.5, 3.0])
+def test_a_fingertip_pinch_of_a_solid_boxs_corner_is_judged_by_its_faces_a_thin_plates_is_not(tip_depth: float):
+    # A side grasp pushed diagonally onto a vertical edge of a 16-voxel block, the fingertips `tip_depth` voxels past
+    # the edge: the pads hold 4-6 voxels of the corner across (less than MIN_NORMAL_EXTENT), and meet its two faces at
+    # 45 degrees, outside the friction cone (26.6). The block's solid core puts the pinch under the friction-cone
+    # test; a plate 2 voxels thick cut to the same corner has no core (its voxels do not resolve its faces' slope, as
+    # on a handle) and is not judged.
+    approach = np.array([-1.0, -1.0, 0.0]) / np.sqrt(2.0)
+    closing = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
+    rot = np.stack([np.cross(closing, approach), closing, approach], axis=1)
+    tip = np.array([24.0, 24.0, 11.0]) + tip_depth * approach
+    candidates = GraspCandidates(tip[None], rot[None], np.array([9.0]), np.ones(1, np.int8))
+    block = np.zeros((1, N, N, N), dtype=bool)
+    block[0, 8:24, 8:24, 2:20] = True
+    plate = np.zeros_like(block)
+    plate[0, 8:24, 8:24, 10:12] = True
+    on_block = check_grasps(candidates, block, identity_pose(), 2.0, CONFIG)
+    on_plate = check_grasps(candidates, plate, identity_pose(), 2.0, CONFIG)
+    assert on_block.contains[0, 0] and on_plate.contains[0, 0]
+    assert on_block.squeezed_out[0, 0] and not on_block.holds[0, 0]
+    assert not on_plate.squeezed_out[0, 0] and on_plate.holds[0, 0]
+
+
 def _mug_like(body: bool = True) -> np.ndarray:
     """A vertical rod 2 x 2 voxels thick, 14 tall (a handle), and, 10 voxels away along -x, a heavy block."""
     occ = np.zeros((1, N, N, N), dtype=bool)

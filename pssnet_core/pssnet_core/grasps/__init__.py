@@ -29,7 +29,10 @@ for completion s when
      its friction cone: the push along the closing axis lies within ``atan(friction)`` of the surface's inward
      normal, the sum over the pad's touching cells of the gradient of the completion smoothed by one voxel. A pinch
      of a body's chord or of a box across its edges fails it (the pads push the object out of the hand, or turn
-     it); handles, rims and wires, too thin for their voxel normals to mean anything, are not judged by it.
+     it); handles, rims and wires, too thin for their voxel normals to mean anything, are not judged by it. From
+     ``MIN_SOLID_NORMAL_EXTENT`` (3) voxels across it is also judged where at least ``MIN_SOLID_SHARE`` (10 %) of
+     the object between the pads lies in the completion's solid core (the voxels left by a one-voxel erosion): the
+     fingertips pinching a solid box's edge or corner, whose faces the voxels do resolve.
   6. in :func:`plan_grasps`, with ``GraspConfig.observed_points_check`` (on by default): no observed point (at the
      camera's resolution) lies inside a finger or the palm. Surface the camera saw is part of every completion,
      and the voxels alone can leave a finger room in the few millimetres where it was seen.

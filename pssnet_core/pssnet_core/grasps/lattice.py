@@ -68,6 +68,15 @@ class PackedGrids:
         smooth = gaussian_filter(self._occupancy.astype(np.float32), (0.0, *(NORMAL_SMOOTHING,) * 3), mode="constant")
         return np.stack(np.gradient(smooth, axis=(1, 2, 3)), axis=-1)
 
+    @functools.cached_property
+    def solid_cores(self) -> PackedGrids:
+        """Each completion eroded by one voxel in every direction (a 3x3x3 cube): the voxels that lie inside a part at
+        least 3 voxels thick every way, packed alike. A wall, handle or rim one or two voxels thick has none."""
+        from scipy.ndimage import binary_erosion
+
+        cube = np.ones((1, 3, 3, 3), dtype=bool)  # no erosion across completions
+        return PackedGrids(binary_erosion(self._occupancy, cube))
+
     def unpack(self, words: np.ndarray) -> np.ndarray:
         """Words (W, ...) -> (..., S) bool."""
         raw = np.ascontiguousarray(np.moveaxis(words, 0, -1)).view(np.uint8)

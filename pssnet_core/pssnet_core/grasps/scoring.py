@@ -32,6 +32,14 @@ def _extents(bits: PackedGrids, slices: np.ndarray) -> tuple[np.ndarray, np.ndar
 #: degrees from their voxel normals, and a check from 3 voxels on left 17 % more of those mugs with no grasp.
 MIN_NORMAL_EXTENT = 6.0
 
+#: Between :data:`MIN_SOLID_NORMAL_EXTENT` and :data:`MIN_NORMAL_EXTENT` voxels across, the contact normals are also
+#: tested where the pads hold a solid part: at least :data:`MIN_SOLID_SHARE` of the object between them lies in its
+#: solid core (:attr:`PackedGrids.solid_cores`, inside a part 3 voxels thick every way). A box's edge or corner pinched
+#: at the fingertips is such a part, and its faces span enough voxels for their normals to read true; a handle, however
+#: it is pinched, is one or two voxels thick somewhere across and has little or no core.
+MIN_SOLID_NORMAL_EXTENT = 3.0
+MIN_SOLID_SHARE = 0.1
+
 
 @dataclass
 class GraspChecks:
@@ -49,7 +57,8 @@ class GraspChecks:
             the friction cone, and closing pushes the object out of the hand or turns it (a pinch of a round
             body's chord: in the grasp trials the oracle's chords of mug bodies too wide for the hand missed or
             slipped). Judged only where every other check passes and the pads hold at least
-            :data:`MIN_NORMAL_EXTENT` voxels of object across (False elsewhere).
+            :data:`MIN_NORMAL_EXTENT` voxels of object across, or a solid part (:func:`_solid_pinch`) from
+            :data:`MIN_SOLID_NORMAL_EXTENT` (False elsewhere).
         lever: (K, S) the arm (voxels) of completion s's weight about the grasp, the part of its moment that lies
             across the closing axis: the pads can resist that part only by pressing unevenly, which a small
             contact (a pinch of a handle from above and below) cannot. A moment about the closing axis itself is
@@ -145,15 +154,37 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     palm_hit = bits.unpack(box_or(bits.data, bits.padded, origins, rot, centres[:, 2], halves[:, 2],
                                   (nx, lattice_count(wmax + 2 * ft, 1.0), lattice_count(dims.palm_depth, 1.0)),
                                   keep=()))
-    # The contact normals only where the rest holds and the pads hold a body across (MIN_NORMAL_EXTENT): on a
-    # handle, rim or wire the voxels do not resolve the part's section, and its voxel normals read as tilted
-    # whichever way it lies.
-    judged = ((fits & above)[:, None] & contains & ~finger_hit & ~palm_hit & (extent >= MIN_NORMAL_EXTENT))
+    # The contact normals only where the rest holds and the pads hold a body across (MIN_NORMAL_EXTENT) or a solid
+    # part (MIN_SOLID_NORMAL_EXTENT): on a handle, rim or wire the voxels do not resolve the part's section, and its
+    # voxel normals read as tilted whichever way it lies.
+    rest = (fits & above)[:, None] & contains & ~finger_hit & ~palm_hit
+    judged = rest & ((extent >= MIN_NORMAL_EXTENT)
+                     | _solid_pinch(bits, closing, rest & (extent >= MIN_SOLID_NORMAL_EXTENT), origins, rot, widths,
+                                    (fw, fl), (nx, n_y, nz)))
     squeezed_out = _outside_friction_cone(bits, origins, rot, widths, (lo, hi), n_y, patches, (fw, fl), (nx, nz),
                                           config.friction, judged)
     return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage, squeezed_out,
                        _levers(bits, origins, rot, fl),
                        _weight_resistance(bits, origins, rot, patches, (fw, fl), (nx, nz), pose.voxel_size, config))
+
+
+def _solid_pinch(bits: PackedGrids, closing: np.ndarray, asked: np.ndarray, origins: np.ndarray, rot: np.ndarray,
+                 widths: np.ndarray, pad: tuple[float, float], counts: tuple[int, int, int]) -> np.ndarray:
+    """(K, S) where ``asked``: at least :data:`MIN_SOLID_SHARE` of the closing region's occupied lattice points
+    (``closing``, (W, n_y, nx * nz, K) words) lie in the completion's solid core (False elsewhere)."""
+    solid = np.zeros(asked.shape, dtype=bool)
+    grasps = np.flatnonzero(asked.any(axis=1))
+    if not len(grasps):
+        return solid
+    (fw, fl), cores = pad, bits.solid_cores
+    halves = np.stack([np.full(len(grasps), fw / 2), widths[grasps] / 2, np.full(len(grasps), fl / 2)], axis=1)
+    in_core = box_or(cores.data, cores.padded, origins[grasps], rot[grasps], np.array([0.0, 0.0, -fl / 2]), halves,
+                     counts, keep=(1, 0, 2))
+    words = len(bits.data)
+    core_points = cores.count(in_core.reshape(words, -1, len(grasps)))  # (K', S)
+    object_points = bits.count(closing[..., grasps].reshape(words, -1, len(grasps)))
+    solid[grasps] = asked[grasps] & (core_points >= MIN_SOLID_SHARE * np.maximum(object_points, 1))
+    return solid
 
 
 def _outside_friction_cone(bits: PackedGrids, origins: np.ndarray, rot: np.ndarray, widths: np.ndarray,
