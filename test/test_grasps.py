@@ -507,10 +507,10 @@ def test_pads_outside_the_friction_cone_squeeze_a_body_out(yaw_deg: float, outsi
 @pytest.mark.parametrize("tip_depth", [2.0, 2.5, 3.0])
 def test_a_fingertip_pinch_of_a_solid_boxs_corner_is_judged_by_its_faces_a_thin_plates_is_not(tip_depth: float):
     # A side grasp pushed diagonally onto a vertical edge of a 16-voxel block, the fingertips `tip_depth` voxels past
-    # the edge: the pads hold 4-6 voxels of the corner across (less than MIN_NORMAL_EXTENT), and meet its two faces at
-    # 45 degrees, outside the friction cone (26.6). The block's solid core puts the pinch under the friction-cone
-    # test; a plate 2 voxels thick cut to the same corner has no core (its voxels do not resolve its faces' slope, as
-    # on a handle) and is not judged.
+    # the edge: the pads hold less of the corner across than MIN_NORMAL_EXTENT (the planner before judged none of
+    # these), and meet its two faces at 45 degrees, outside the friction cone (26.6). The block's solid core puts the
+    # pinch under the friction-cone test; a plate 2 voxels thick cut to the same corner has no core (its voxels do not
+    # resolve its faces' slope, as on a handle) and is not judged.
     approach = np.array([-1.0, -1.0, 0.0]) / np.sqrt(2.0)
     closing = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
     rot = np.stack([np.cross(closing, approach), closing, approach], axis=1)
