@@ -28,6 +28,7 @@ from pssnet_core.grasps import (
     single_completion_choice,
 )
 from pssnet_core.grasps.config import VoxelDims
+from pssnet_core.grasps.lattice import PackedGrids
 from pssnet_core.grasps.scoring import observed_point_hits
 
 N = 32
@@ -525,6 +526,19 @@ def test_a_fingertip_pinch_of_a_solid_boxs_corner_is_judged_by_its_faces_a_thin_
     assert on_block.contains[0, 0] and on_plate.contains[0, 0]
     assert on_block.squeezed_out[0, 0] and not on_block.holds[0, 0]
     assert not on_plate.squeezed_out[0, 0] and on_plate.holds[0, 0]
+
+
+def test_solid_cores_erode_each_completion_alone():
+    # A block in the first completion and nothing in the second: the first's core is the block less one voxel on
+    # every side, whatever the (empty) neighbour; a wall 2 voxels thick has none.
+    occ = np.zeros((3, N, N, N), dtype=bool)
+    occ[0, 8:16, 8:16, 2:10] = True
+    occ[2, 8:16, 8:10, 2:10] = True
+    cores = PackedGrids(occ).solid_cores
+    expected = np.zeros_like(occ)
+    expected[0, 9:15, 9:15, 3:9] = True
+    np.testing.assert_array_equal(cores.unpack(cores.data.reshape(len(cores.data), N + 2, N + 2, N + 2))
+                                  [1:-1, 1:-1, 1:-1].transpose(3, 0, 1, 2), expected)
 
 
 def _mug_like(body: bool = True) -> np.ndarray:
