@@ -123,8 +123,9 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
 
     # Closing region: the object's extent along the closing axis, and which pad cells face object.
     n_y = lattice_count(wmax, 1.0)
-    closing = box_or(bits.data, bits.padded, origins, rot, np.array([0.0, 0.0, -fl / 2]),
-                     np.stack([np.full(k, fw / 2), widths / 2, np.full(k, fl / 2)], axis=1), (nx, n_y, nz),
+    closing_box = (np.array([0.0, 0.0, -fl / 2]),  # centre, (K, 3) half extents, lattice counts
+                   np.stack([np.full(k, fw / 2), widths / 2, np.full(k, fl / 2)], axis=1), (nx, n_y, nz))
+    closing = box_or(bits.data, bits.padded, origins, rot, *closing_box,
                      keep=(1, 0, 2)).reshape(len(bits.data), n_y, nx * nz, k)  # (W, n_y, pad cells, K)
     lo, hi, has = _extents(bits, np.bitwise_or.reduce(closing, axis=2))
     step = (widths / (n_y - 1))[:, None]  # slice spacing, voxels
@@ -159,8 +160,8 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
     # voxel normals read as tilted whichever way it lies.
     rest = (fits & above)[:, None] & contains & ~finger_hit & ~palm_hit
     judged = rest & ((extent >= MIN_NORMAL_EXTENT)
-                     | _solid_pinch(bits, closing, rest & (extent >= MIN_SOLID_NORMAL_EXTENT), origins, rot, widths,
-                                    (fw, fl), (nx, n_y, nz)))
+                     | _solid_pinch(bits, closing, closing_box, rest & (extent >= MIN_SOLID_NORMAL_EXTENT), origins,
+                                    rot))
     squeezed_out = _outside_friction_cone(bits, origins, rot, widths, (lo, hi), n_y, patches, (fw, fl), (nx, nz),
                                           config.friction, judged)
     return GraspChecks(fits, above, contains, finger_hit, palm_hit, coverage, squeezed_out,
@@ -168,18 +169,19 @@ def checks_from_packed(candidates: GraspCandidates, bits: PackedGrids, pose: Gri
                        _weight_resistance(bits, origins, rot, patches, (fw, fl), (nx, nz), pose.voxel_size, config))
 
 
-def _solid_pinch(bits: PackedGrids, closing: np.ndarray, asked: np.ndarray, origins: np.ndarray, rot: np.ndarray,
-                 widths: np.ndarray, pad: tuple[float, float], counts: tuple[int, int, int]) -> np.ndarray:
+def _solid_pinch(bits: PackedGrids, closing: np.ndarray, closing_box: tuple[np.ndarray, np.ndarray, tuple[int, ...]],
+                 asked: np.ndarray, origins: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """(K, S) where ``asked``: at least :data:`MIN_SOLID_SHARE` of the closing region's occupied lattice points
-    (``closing``, (W, n_y, nx * nz, K) words) lie in the completion's solid core (False elsewhere)."""
+    (``closing``, (W, n_y, nx * nz, K) words of the box ``closing_box``: centre, (K, 3) half extents, lattice counts)
+    lie in the completion's solid core (False elsewhere)."""
     solid = np.zeros(asked.shape, dtype=bool)
     grasps = np.flatnonzero(asked.any(axis=1))
     if not len(grasps):
         return solid
-    (fw, fl), cores = pad, bits.solid_cores
-    halves = np.stack([np.full(len(grasps), fw / 2), widths[grasps] / 2, np.full(len(grasps), fl / 2)], axis=1)
-    in_core = box_or(cores.data, cores.padded, origins[grasps], rot[grasps], np.array([0.0, 0.0, -fl / 2]), halves,
-                     counts, keep=(1, 0, 2))
+    centre, halves, counts = closing_box
+    cores = bits.solid_cores
+    in_core = box_or(cores.data, cores.padded, origins[grasps], rot[grasps], centre, halves[grasps], counts,
+                     keep=(1, 0, 2))
     words = len(bits.data)
     core_points = cores.count(in_core.reshape(words, -1, len(grasps)))  # (K', S)
     object_points = bits.count(closing[..., grasps].reshape(words, -1, len(grasps)))
