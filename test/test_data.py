@@ -379,6 +379,17 @@ def test_large_scale_is_many_objects_few_random_yaw_views_and_half_noisy():
         np.testing.assert_allclose(again.depth[v0:v0 + h, u0:u0 + w], depth[v0:v0 + h, u0:u0 + w], atol=6e-4)
 
 
+def test_boxes_scale_adds_independent_and_edged_boxes_to_the_ycb_objects_only():
+    boxes = {s.name: s for s in dataset_specs("all", "train", scale="boxes", num_objects=14)}
+    large = {s.name: s for s in dataset_specs("all", "train", scale="large", num_objects=14)}
+    assert boxes["mugs"] == large["mugs"]
+    assert dataclasses.replace(boxes["ycb"], families=large["ycb"].families) == large["ycb"]
+    families = [i.family for i in boxes["ycb"].object_identities()]
+    assert sum(f.startswith("box") for f in families) == 6 and {"box_broad", "box_edged"} <= set(families)
+    for split in ("val", "test"):
+        assert dataset_specs("all", split, scale="boxes") == dataset_specs("all", split)
+
+
 def test_broad_scale_mixes_prior_breaking_families_and_hides_mug_handles_behind_slits():
     broad = {s.name: s for s in dataset_specs("all", "train", scale="broad", num_objects=8)}
     assert broad["mugs"].families == ("mug", "mug_broad") and broad["mugs"].is_mugs

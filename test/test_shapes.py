@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pssnet_core.data.scenes import ObjectScene
 from pssnet_core.shapes import (
     BROAD_FAMILIES,
+    EDGED_FAMILIES,
     FAMILIES,
     MAX_DIAGONAL,
     SPLIT_RANGES,
@@ -31,7 +33,8 @@ def mugs() -> list[Shape]:
 def test_family_lists() -> None:
     assert FAMILIES[:6] == ("mug", "box", "can", "bottle", "bowl", "irregular")
     assert YCB_FAMILIES == FAMILIES[1:6]
-    assert FAMILIES[6:] == BROAD_FAMILIES == ("mug_broad", "box_broad", "can_broad", "bottle_broad")
+    assert FAMILIES[6:10] == BROAD_FAMILIES == ("mug_broad", "box_broad", "can_broad", "bottle_broad")
+    assert FAMILIES[10:] == EDGED_FAMILIES == ("box_edged",)
 
 
 @pytest.mark.parametrize("family", FAMILIES)
@@ -212,6 +215,27 @@ def test_ycb_like_attributes(family: str) -> None:
     if family == "bowl":
         for s in shapes:  # open at the top and much lighter than a solid of the same outline
             assert s.mesh.volume < 0.5 * np.pi * s.attributes["rim_radius"] ** 2 * s.attributes["height"]
+
+
+def test_edged_boxes_soften_their_edges_and_keep_their_sides() -> None:
+    """box_edged: the bounds are the drawn sides; a bevel or rounding removes the corner (and a rounded vertical
+    edge removes the area between a square and its inscribed 24-gon along the height), a sharp box keeps it."""
+    shapes = [make_shape("box_edged", seed) for seed in range(40)]
+    kinds = {s.attributes["kind"] for s in shapes}
+    assert kinds == {"edged_sharp", "edged_bevelled", "edged_rounded_vertical", "edged_rounded"}
+    for s in shapes:
+        edge, extents = s.attributes["edge_m"], s.mesh.extents
+        assert s.mesh.is_watertight and 0.0 <= edge <= extents.min() / 3 + 1e-9
+        low = s.mesh.bounds[0]
+        inset = edge / 4 if edge > 0 else 0.001
+        near_corner = low + inset  # inside a sharp box, outside a bevelled or rounded one
+        near_face = low + np.array([extents[0] / 2, extents[1] / 2, inset])  # inside every box
+        inside = ObjectScene(s, threads=1).occupancy(np.array([near_corner, near_face]))
+        assert inside[1] and inside[0] == (s.attributes["kind"] == "edged_sharp")
+        if s.attributes["kind"] == "edged_rounded_vertical":
+            removed = np.prod(extents) - s.mesh.volume
+            # The rounded edge is a 24-gon: each corner keeps a quarter of its area, 6 sin(15 deg) r^2.
+            assert removed == pytest.approx((4 - 24 / 2 * np.sin(2 * np.pi / 24)) * edge ** 2 * extents[2], rel=0.005)
 
 
 def test_broad_families_break_the_base_families_priors() -> None:

@@ -106,7 +106,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--scale", choices=SCALES, default="default",
                    help="large (train only): 20,000 mugs + 20,000 ycb objects x 4 random-yaw views, noise on half "
                         "of the views (160,000 views); broad: the same with half the objects from the families "
-                        "that break the generator's priors and the mugs seen through random slits too; val and "
+                        "that break the generator's priors and the mugs seen through random slits too; boxes: as "
+                        "large, with boxes of independent sides and bevelled or rounded edges joining the ycb "
+                        "objects (3 of 7 are boxes); val and "
                         "test are the same at every scale")
     b.add_argument("--front-margin", type=float, default=None, help="grid front margin in voxels "
                    "(default GridConfig's; the node must use the same)")

@@ -57,7 +57,7 @@ from pssnet_core.data.scenes import (
     posed_box_corners,
 )
 from pssnet_core.geometry import CameraIntrinsics, GridConfig, ObservationError
-from pssnet_core.shapes import MUG_FAMILIES, YCB_FAMILIES, Shape, ShapeId, shape_of, split_seeds
+from pssnet_core.shapes import EDGED_FAMILIES, MUG_FAMILIES, YCB_FAMILIES, Shape, ShapeId, shape_of, split_seeds
 from pssnet_core.shapes.registry_objects import registry_identities
 
 MUG_VIEWS = 72
@@ -268,7 +268,10 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         scale: "default", "large" (train: 20,000 objects per family group x 4 random-yaw views, noise on
             half of the views unless ``noise`` is given) or "broad" (as large, with half the objects from
             :data:`~pssnet_core.shapes.procedural.BROAD_FAMILIES`, and the mugs seen through random slits too,
-            so that a hidden handle can lie at any azimuth); val and test are the same at every scale, so that
+            so that a hidden handle can lie at any azimuth) or "boxes" (as large, with the ycb group joined by
+            boxes of independent sides, ``box_broad``, and of bevelled or rounded edges,
+            :data:`~pssnet_core.shapes.procedural.EDGED_FAMILIES`: 3 of 7 objects are boxes, not 1 of 5, the
+            mugs as in large); val and test are the same at every scale, so that
             models trained at any scale are validated and tested alike.
     """
     if scale not in SCALES:
@@ -303,7 +306,7 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         specs += _oof_specs(common, num_objects)
         num_objects = None  # applied to the identity lists
     overrides: dict[str, Any] = {}
-    if scale in ("large", "broad") and split == "train":
+    if scale in ("large", "broad", "boxes") and split == "train":
         overrides.update(num_objects=LARGE_TRAIN_OBJECTS, views=LARGE_TRAIN_VIEWS, random_yaw=True,
                          objects_per_shard=LARGE_OBJECTS_PER_SHARD)
         if noise is None:
@@ -311,6 +314,9 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
     if scale == "broad" and split == "train":
         specs = [replace(s, families=("mug", "mug_broad"), slit_mode="random", slit_range_m=BROAD_MUG_SLIT_M)
                  if s.is_mugs else replace(s, families=YCB_FAMILIES + ("box_broad", "can_broad", "bottle_broad"))
+                 for s in specs]
+    if scale == "boxes" and split == "train":
+        specs = [s if s.is_mugs else replace(s, families=YCB_FAMILIES + ("box_broad",) + EDGED_FAMILIES)
                  for s in specs]
     if num_objects is not None:
         overrides["num_objects"] = int(num_objects)

@@ -14,6 +14,7 @@ from pssnet_core.shapes.mesh_io import (
 )
 from pssnet_core.shapes.procedural import (
     BROAD_FAMILIES,
+    EDGED_FAMILIES,
     FAMILIES,
     MAX_DIAGONAL,
     SPLIT_RANGES,
@@ -28,8 +29,8 @@ from pssnet_core.shapes.procedural import (
 from pssnet_core.shapes.registry_objects import REGISTRY_FAMILIES, RegistryObjectError
 
 __all__ = [
-    "ALL_FAMILIES", "BOX_FAMILIES", "BROAD_FAMILIES", "FAMILIES", "INDEPENDENT_FAMILIES", "LAYOUTS", "MAX_DIAGONAL",
-    "MUG_FAMILIES", "REGISTRY_FAMILIES", "SPLIT_RANGES", "YCB_FAMILIES", "MeshLoadError", "RegistryObjectError",
-    "Shape", "ShapeError", "ShapeId", "export_shapes", "load_mesh", "load_mesh_folder", "make_independent_shape",
-    "make_shape", "normalize_mesh", "shape_of", "split_of_seed", "split_seeds",
+    "ALL_FAMILIES", "BOX_FAMILIES", "BROAD_FAMILIES", "EDGED_FAMILIES", "FAMILIES", "INDEPENDENT_FAMILIES", "LAYOUTS",
+    "MAX_DIAGONAL", "MUG_FAMILIES", "REGISTRY_FAMILIES", "SPLIT_RANGES", "YCB_FAMILIES", "MeshLoadError",
+    "RegistryObjectError", "Shape", "ShapeError", "ShapeId", "export_shapes", "load_mesh", "load_mesh_folder",
+    "make_independent_shape", "make_shape", "normalize_mesh", "shape_of", "split_of_seed", "split_seeds",
 ]

@@ -18,7 +18,7 @@ ALL_FAMILIES: tuple[str, ...] = FAMILIES + INDEPENDENT_FAMILIES + REGISTRY_FAMIL
 MUG_FAMILIES: tuple[str, ...] = ("mug", "imug", "rmug", "mug_broad")
 """Mugs of every source: ``Shape.handle`` is set when the mug has a handle."""
 
-BOX_FAMILIES: tuple[str, ...] = ("box", "ibox", "rbox", "box_broad")
+BOX_FAMILIES: tuple[str, ...] = ("box", "ibox", "rbox", "box_broad", "box_edged")
 """Boxes of every source: the slit experiment stretches them along their hidden axis."""
 
 

@@ -34,7 +34,7 @@ import numpy as np
 import trimesh
 
 FAMILIES: tuple[str, ...] = ("mug", "box", "can", "bottle", "bowl", "irregular",
-                             "mug_broad", "box_broad", "can_broad", "bottle_broad")
+                             "mug_broad", "box_broad", "can_broad", "bottle_broad", "box_edged")
 """Every procedural family. The ``*_broad`` families break the base families' priors (training only, see
 :data:`BROAD_FAMILIES`)."""
 
@@ -47,6 +47,12 @@ ranges of body size, handle reach, span, thickness and tilt and a slightly ellip
 depth and height are independent (a box's hidden depth says nothing about its visible face); cans and bottles
 stretched independently along each axis. A model trained on the base families alone learns their
 correlations (a cereal box is ~7 cm deep) and completes every hidden side to them."""
+
+EDGED_FAMILIES: tuple[str, ...] = ("box_edged",)
+"""Boxes of independent sides (as ``box_broad``) whose edges are bevelled or rounded, by boolean unions and
+differences of prisms, cylinders and spheres: real packaging rarely has the knife edges of ``Manifold.cube``,
+and a model that has only seen those over-extends the hidden side of a box whose silhouette is softened
+(training only, the ``boxes`` scale)."""
 
 MAX_DIAGONAL: float = 0.18
 """Largest allowed diagonal of an object's axis-aligned bounds (m): it then fits a 0.18 m cube in any pose."""
@@ -617,6 +623,59 @@ def _build_box_broad(rng: np.random.Generator) -> tuple[mf.Manifold, None, dict]
     return solid, None, {"kind": "broad", "lying": False, "scale_to_fit": 1.0}
 
 
+BOX_EDGE_KINDS: tuple[str, ...] = ("sharp", "bevelled", "rounded_vertical", "rounded")
+BOX_EDGE_RANGE_M: tuple[float, float] = (0.002, 0.015)
+"""Range of ``box_edged``'s bevel leg or rounding radius, capped at a third of the shortest side."""
+
+
+def _build_box_edged(rng: np.random.Generator) -> tuple[mf.Manifold, None, dict]:
+    solid, _, attributes = _build_box_broad(rng)
+    size = np.ptp(np.reshape(solid.bounding_box(), (2, 3)), axis=0)
+    kind = str(rng.choice(BOX_EDGE_KINDS))
+    edge = min(_uniform(rng, *BOX_EDGE_RANGE_M), float(size.min()) / 3)
+    half = size / 2
+    if kind == "bevelled":  # each of the 12 edges cut at 45 degrees by a square prism turned about it
+        cutters = []
+        for axis in range(3):
+            a, b = [k for k in range(3) if k != axis]
+            # A cube's z edge turned 45 degrees about z: a square prism whose corner reaches `edge` into the box.
+            prism = mf.Manifold.cube((edge * np.sqrt(2),) * 2 + (size[axis] + 0.01,), center=True).rotate((0, 0, 45))
+            prism = {0: prism.rotate((0, 90, 0)), 1: prism.rotate((90, 0, 0)), 2: prism}[axis]
+            for sa in (-1, 1):
+                for sb in (-1, 1):
+                    offset = np.zeros(3)
+                    offset[a], offset[b] = sa * half[a], sb * half[b]
+                    cutters.append(prism.translate(tuple(offset)))
+        box = mf.Manifold.cube(tuple(size), center=True) - mf.Manifold.batch_boolean(cutters, mf.OpType.Add)
+    elif kind in ("rounded_vertical", "rounded"):
+        # Classic CSG rounding: inset slabs plus cylinders along the rounded edges (and spheres at the corners).
+        rounded_axes = (0, 1) if kind == "rounded_vertical" else (0, 1, 2)
+        parts = []
+        for axis in rounded_axes:
+            inset = size.copy()
+            inset[[k for k in rounded_axes if k != axis]] -= 2 * edge
+            parts.append(mf.Manifold.cube(tuple(inset), center=True))
+        edge_axes = (2,) if kind == "rounded_vertical" else (0, 1, 2)
+        for axis in edge_axes:
+            a, b = [k for k in range(3) if k != axis]
+            length = size[axis] - (2 * edge if axis in rounded_axes else 0.0)
+            cylinder = mf.Manifold.cylinder(length, edge, edge, 24, True)
+            cylinder = {0: cylinder.rotate((0, 90, 0)), 1: cylinder.rotate((90, 0, 0)), 2: cylinder}[axis]
+            for sa in (-1, 1):
+                for sb in (-1, 1):
+                    offset = np.zeros(3)
+                    offset[a], offset[b] = sa * (half[a] - edge), sb * (half[b] - edge)
+                    parts.append(cylinder.translate(tuple(offset)))
+        if kind == "rounded":
+            parts += [mf.Manifold.sphere(edge, 24).translate(tuple(s * (half - edge)))
+                      for s in np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])]
+        box = mf.Manifold.batch_boolean(parts, mf.OpType.Add)
+    else:
+        box = mf.Manifold.cube(tuple(size), center=True)
+    attributes.update(kind=f"edged_{kind}", edge_m=edge if kind != "sharp" else 0.0)
+    return box.translate((0.0, 0.0, size[2] / 2)), None, attributes
+
+
 def _stretched(builder: Callable[[np.random.Generator], tuple[mf.Manifold, None, dict]]
                ) -> Callable[[np.random.Generator], tuple[mf.Manifold, None, dict]]:
     """A base family's builder followed by independent per-axis scaling (base stays at z = 0, axis at x = y = 0)."""
@@ -646,4 +705,5 @@ _BUILDERS: Mapping[str, _Builder] = MappingProxyType({
     "box_broad": _build_box_broad,
     "can_broad": _stretched(_build_can),
     "bottle_broad": _stretched(_build_bottle),
+    "box_edged": _build_box_edged,
 })
