@@ -637,15 +637,9 @@ def _build_box_edged(rng: np.random.Generator) -> tuple[mf.Manifold, None, dict]
     if kind == "bevelled":  # each of the 12 edges cut at 45 degrees by a square prism turned about it
         cutters = []
         for axis in range(3):
-            a, b = [k for k in range(3) if k != axis]
-            # A cube's z edge turned 45 degrees about z: a square prism whose corner reaches `edge` into the box.
+            # A square prism turned 45 degrees about its axis, centred on the edge: its corner reaches `edge` in.
             prism = mf.Manifold.cube((edge * np.sqrt(2),) * 2 + (size[axis] + 0.01,), center=True).rotate((0, 0, 45))
-            prism = {0: prism.rotate((0, 90, 0)), 1: prism.rotate((90, 0, 0)), 2: prism}[axis]
-            for sa in (-1, 1):
-                for sb in (-1, 1):
-                    offset = np.zeros(3)
-                    offset[a], offset[b] = sa * half[a], sb * half[b]
-                    cutters.append(prism.translate(tuple(offset)))
+            cutters += [_along(prism, axis).translate(offset) for offset in _edge_lines(half, axis)]
         box = mf.Manifold.cube(tuple(size), center=True) - mf.Manifold.batch_boolean(cutters, mf.OpType.Add)
     elif kind in ("rounded_vertical", "rounded"):
         # Classic CSG rounding: inset slabs plus cylinders along the rounded edges (and spheres at the corners).
@@ -655,25 +649,37 @@ def _build_box_edged(rng: np.random.Generator) -> tuple[mf.Manifold, None, dict]
             inset = size.copy()
             inset[[k for k in rounded_axes if k != axis]] -= 2 * edge
             parts.append(mf.Manifold.cube(tuple(inset), center=True))
-        edge_axes = (2,) if kind == "rounded_vertical" else (0, 1, 2)
-        for axis in edge_axes:
-            a, b = [k for k in range(3) if k != axis]
+        for axis in (2,) if kind == "rounded_vertical" else (0, 1, 2):
             length = size[axis] - (2 * edge if axis in rounded_axes else 0.0)
-            cylinder = mf.Manifold.cylinder(length, edge, edge, 24, True)
-            cylinder = {0: cylinder.rotate((0, 90, 0)), 1: cylinder.rotate((90, 0, 0)), 2: cylinder}[axis]
-            for sa in (-1, 1):
-                for sb in (-1, 1):
-                    offset = np.zeros(3)
-                    offset[a], offset[b] = sa * (half[a] - edge), sb * (half[b] - edge)
-                    parts.append(cylinder.translate(tuple(offset)))
+            cylinder = _along(mf.Manifold.cylinder(length, edge, edge, 24, True), axis)
+            parts += [cylinder.translate(offset) for offset in _edge_lines(half - edge, axis)]
         if kind == "rounded":
-            parts += [mf.Manifold.sphere(edge, 24).translate(tuple(s * (half - edge)))
-                      for s in np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])]
+            parts += [mf.Manifold.sphere(edge, 24).translate(tuple(corner * (half - edge))) for corner in _CORNERS]
         box = mf.Manifold.batch_boolean(parts, mf.OpType.Add)
     else:
         box = mf.Manifold.cube(tuple(size), center=True)
     attributes.update(kind=f"edged_{kind}", edge_m=edge if kind != "sharp" else 0.0)
     return box.translate((0.0, 0.0, size[2] / 2)), None, attributes
+
+
+_CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+
+
+def _along(solid: mf.Manifold, axis: int) -> mf.Manifold:
+    """A solid made along z turned to lie along ``axis`` (0: x, 1: y, 2: z)."""
+    return solid.rotate(((0, 90, 0), (90, 0, 0), (0, 0, 0))[axis])
+
+
+def _edge_lines(half: np.ndarray, axis: int) -> list[tuple[float, float, float]]:
+    """The centres of the four lines parallel to ``axis`` at +-half along the two other axes."""
+    a, b = [k for k in range(3) if k != axis]
+    offsets = []
+    for sa in (-1, 1):
+        for sb in (-1, 1):
+            offset = np.zeros(3)
+            offset[a], offset[b] = sa * half[a], sb * half[b]
+            offsets.append(tuple(offset))
+    return offsets
 
 
 def _stretched(builder: Callable[[np.random.Generator], tuple[mf.Manifold, None, dict]]
