@@ -35,8 +35,8 @@ import trimesh
 
 FAMILIES: tuple[str, ...] = ("mug", "box", "can", "bottle", "bowl", "irregular",
                              "mug_broad", "box_broad", "can_broad", "bottle_broad", "box_edged")
-"""Every procedural family. The ``*_broad`` families break the base families' priors (training only, see
-:data:`BROAD_FAMILIES`)."""
+"""Every procedural family. The ``*_broad`` families break the base families' priors and ``box_edged`` softens the
+boxes' edges (training only, see :data:`BROAD_FAMILIES` and :data:`EDGED_FAMILIES`)."""
 
 YCB_FAMILIES: tuple[str, ...] = ("box", "can", "bottle", "bowl", "irregular")
 """The YCB-like families (used by the slit-occlusion experiment)."""
@@ -49,10 +49,9 @@ stretched independently along each axis. A model trained on the base families al
 correlations (a cereal box is ~7 cm deep) and completes every hidden side to them."""
 
 EDGED_FAMILIES: tuple[str, ...] = ("box_edged",)
-"""Boxes of independent sides (as ``box_broad``) whose edges are bevelled or rounded, by boolean unions and
-differences of prisms, cylinders and spheres: real packaging rarely has the knife edges of ``Manifold.cube``,
-and a model that has only seen those over-extends the hidden side of a box whose silhouette is softened
-(training only, the ``boxes`` scale)."""
+"""Boxes of independent sides (as ``box_broad``) whose edges are sharp, bevelled or rounded, by boolean unions and
+differences of prisms, cylinders and spheres: real packaging rarely has the knife edges of ``Manifold.cube``
+(training only, the ``boxes`` scale; ``results/edged_boxes/`` measures what training on them changes)."""
 
 MAX_DIAGONAL: float = 0.18
 """Largest allowed diagonal of an object's axis-aligned bounds (m): it then fits a 0.18 m cube in any pose."""
