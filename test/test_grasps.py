@@ -86,6 +86,10 @@ def test_gripper_config_rejects_absurd_values(kwargs, message):
     ({"friction": 0.0}, "friction"),
     ({"object_density": -1.0}, "object_density"),
     ({"gripper": {"max_opening": 0.08}}, "GripperConfig"),
+    ({"dense_below": 1.5}, "dense_below"),
+    ({"dense_below": True}, "dense_below"),
+    ({"dense_tilted_pitches": (95.0,)}, "tilted_pitches"),
+    ({"dense_below": 0.9, "dense_max_candidates": 0}, "max_candidates"),
 ])
 def test_grasp_config_rejects_bad_values(kwargs, message):
     with pytest.raises(GraspError, match=message):
@@ -248,6 +252,29 @@ def lowest_gripper_z(grasps) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- ranking and poses
+
+
+def test_a_denser_search_is_added_only_where_no_grasp_holds_the_weight_firmly():
+    # Solid water-dense bar: the best grasp holds all its weight, so the denser search (by default below 0.9)
+    # changes nothing. At 25 times that density no grasp holds a quarter of it: the denser search's candidates join
+    # the default's, and the best of both comes first.
+    assert GraspConfig().dense_below == 0.9
+    off = GraspConfig(dense_below=0.0)
+    plain = plan_grasps(bar(), identity_pose(), config=off)
+    assert plain.weight_shares[0] == 1.0
+    firm = plan_grasps(bar(), identity_pose(), config=GraspConfig())
+    np.testing.assert_array_equal(firm.poses, plain.poses)
+
+    heavy = GraspConfig(object_density=25_000.0)
+    default = plan_grasps(bar(), identity_pose(), config=dataclasses.replace(heavy, dense_below=0.0))
+    assert default.weight_shares[0] < 0.9
+    denser = plan_grasps(bar(), identity_pose(), config=heavy.denser())
+    assert len(denser) > len(default)
+    both = plan_grasps(bar(), identity_pose(), config=heavy)
+    assert len(both) == len(default) + len(denser)
+    assert both.grip[0] == max(default.grip[0], denser.grip[0])
+    assert np.all(np.diff(both.grip) <= 0)  # ranked together, not one list after the other
+    assert heavy.denser().dense_below == 0.0 and heavy.denser().max_candidates == heavy.dense_max_candidates
 
 
 def test_ranking_scores_and_determinism():

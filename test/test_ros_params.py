@@ -84,6 +84,8 @@ def test_descriptors_carry_type_range_and_when_they_may_change():
     ({"grasp_rank_by": "luck"}, "grasp_rank_by must be one of expected_grip, fraction, got 'luck'"),
     ({"grasp_holds_axial_load": 1}, "grasp_holds_axial_load must be a bool"),
     ({"grasp_friction": 3.0}, r"grasp_friction must be in \[0.05, 2.0\], got 3.0"),
+    ({"grasp_dense_below": 1.5}, r"grasp_dense_below must be in \[0.0, 1.0\], got 1.5"),
+    ({"grasp_dense_tilted_pitches": [0.0]}, r"tilted_pitches must be degrees in \(0, 90\)"),
 ])
 def test_invalid_values_are_rejected_with_a_reason(changes, reason):
     values = {**defaults(), **changes}
@@ -128,7 +130,7 @@ def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
 
 def test_every_pipeline_parameter_names_a_config_field_with_its_default():
     fields = [spec.field for spec in PARAMETERS if spec.field]
-    assert len(fields) == len(set(fields)) == 43
+    assert len(fields) == len(set(fields)) == 48
     for spec in PARAMETERS:
         if spec.field:
             assert spec.default == config_default(spec.field), spec.name
@@ -147,7 +149,9 @@ def test_every_pipeline_parameter_names_a_config_field_with_its_default():
                "grasp_shallow_depths": [], "grasp_thin_anchor_bias": 2.0, "grasp_rank_by": "fraction",
                "grasp_grip_force": 40.0, "grasp_holds_axial_load": True, "grasp_friction": 0.8,
                "grasp_object_density": 400.0, "grasp_observed_points_check": False,
-               "grasp_surface_at_voxel_centres": False}
+               "grasp_surface_at_voxel_centres": False, "grasp_dense_below": 0.5,
+               "grasp_dense_max_candidates": 900, "grasp_dense_side_yaws": 36, "grasp_dense_tilted_pitches": [30.0],
+               "grasp_dense_shallow_depths": [0.02]}
     assert set(changed) == {s.name for s in PARAMETERS if s.field}
     config = pipeline_config({**values, **changed})
     for name, value in changed.items():

@@ -225,6 +225,17 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               field="grasps.shallow_depths", constraints="each in (0, grasp_finger_length)"),
     ParamSpec("grasp_thin_anchor_bias", "candidates are anchored on thin parts (handles) more often: draw "
               "probability ~ local density ^ -bias; 0 = uniform", 0.0, 4.0, field="grasps.thin_anchor_bias"),
+    ParamSpec("grasp_dense_below", "when the best grasp found holds less than this share of the object's weight "
+              "(or none holds), search again with the grasp_dense_* options and rank both searches' grasps "
+              "together; 0 = never", 0.0, 1.0, field="grasps.dense_below"),
+    ParamSpec("grasp_dense_max_candidates", "the denser search: candidate grasps", 1, 100_000,
+              field="grasps.dense_max_candidates"),
+    ParamSpec("grasp_dense_side_yaws", "the denser search: horizontal approach directions", 0, 360,
+              field="grasps.dense_side_yaws"),
+    ParamSpec("grasp_dense_tilted_pitches", "the denser search: tilted approaches' pitches below the horizontal, "
+              "degrees", field="grasps.dense_tilted_pitches", constraints="each in (0, 90)"),
+    ParamSpec("grasp_dense_shallow_depths", "the denser search: shallow grasps' fingertip depths past the first "
+              "contact, metres", field="grasps.dense_shallow_depths", constraints="each in (0, grasp_finger_length)"),
     ParamSpec("grasp_rank_by", "expected_grip = by the weighted share of completions each grasp holds firmly "
               "(pad contact x weight held); fraction = by the share of completions it holds", field="grasps.rank_by",
               choices=("expected_grip", "fraction")),

@@ -93,6 +93,10 @@ mug's rim is pinched wall by wall rather than across the whole cup. Near-duplica
 ``max_candidates`` are kept (a seeded random subset). A caller's ``allowed`` filter (approaches clear of known
 clutter) is applied before that subset, and pairs are drawn again, up to ``draw_rounds`` rounds, until
 ``max_candidates`` pass it.
+Where the best grasp so found holds less than ``dense_below`` (0.9) of the weight, or none holds, :func:`plan_grasps`
+searches again with more candidates, yaws, pitches and depths (``dense_*``) and ranks both searches' grasps together:
+a handle in a cupboard leaves few candidates that hold, and the denser search finds firmer ones there, while an open
+view's best grasp nearly always holds the whole weight and pays nothing (``results/grasp_trials/dense_below/``).
 Deterministic given the seed.
 
 Support plane: the grid is gravity aligned, so the plane is the horizontal plane ``z = support_z`` (grid

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -123,6 +123,13 @@ class GraspConfig:
             (``results/second_look/README.md``). On by default: with it the second look lifted more boxes behind
             the slit (+7/-0 and +3/-0 on two sets of 200 scenes) and mugs (+2/-0), and every one-view run came out
             the same; ``pssnet grasp-trials --no-observed-points-check`` turns it off.
+        dense_below: when the best grasp found holds less than this share of the weight (``GraspSet.weight_shares``;
+            or no grasp holds at all), the search is repeated with the ``dense_*`` options and the better grasps of
+            both searches are ranked together; 0 = never. The weight check rates the grasps it calls firm well,
+            and where it finds none a denser search often does: a thin handle in a cupboard leaves few candidates
+            that hold, a solid box many (``results/grasp_trials/oracle_slips/``, ``results/grasp_trials.md``).
+        dense_max_candidates, dense_side_yaws, dense_tilted_pitches, dense_shallow_depths: the denser search's
+            ``max_candidates``, ``side_yaws``, ``tilted_pitches`` and ``shallow_depths``.
         seed: seed of the anchor/orientation sampling and of the final subset.
     """
 
@@ -143,12 +150,18 @@ class GraspConfig:
     object_density: float = 1000.0
     rank_by: str = "expected_grip"
     observed_points_check: bool = True
+    dense_below: float = 0.9
+    dense_max_candidates: int = 1500
+    dense_side_yaws: int = 48
+    dense_tilted_pitches: tuple[float, ...] = (20.0, 45.0, 70.0)
+    dense_shallow_depths: tuple[float, ...] = (0.01, 0.02, 0.03)
     seed: int = 0
 
     def __post_init__(self) -> None:
         if not isinstance(self.gripper, GripperConfig):
             raise GraspError(f"gripper must be a GripperConfig, got {type(self.gripper).__name__}")
-        for name in ("max_candidates", "top_yaws", "side_yaws", "draw_rounds", "seed"):
+        for name in ("max_candidates", "top_yaws", "side_yaws", "draw_rounds", "dense_max_candidates",
+                     "dense_side_yaws", "seed"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
                 raise GraspError(f"{name} must be an integer, got {value!r}")
@@ -191,6 +204,20 @@ class GraspConfig:
             raise GraspError(f"rank_by must be one of {RANKINGS}, got {self.rank_by!r}")
         if self.seed < 0:
             raise GraspError(f"seed must be >= 0, got {self.seed}")
+        if isinstance(self.dense_below, bool) or not 0.0 <= float(self.dense_below) <= 1.0:
+            raise GraspError(f"dense_below must be in [0, 1], got {self.dense_below!r}")
+        searched = (self.max_candidates, self.side_yaws, tuple(self.tilted_pitches), tuple(self.shallow_depths),
+                    float(self.dense_below))
+        denser = (self.dense_max_candidates, self.dense_side_yaws, tuple(self.dense_tilted_pitches),
+                  tuple(self.dense_shallow_depths), 0.0)
+        if searched != denser:  # (the denser search's own config stops here)
+            self.denser()  # the dense_* options pass the same checks as the default search's, used now or not
+
+    def denser(self) -> GraspConfig:
+        """The options of the denser search :attr:`dense_below` asks for (which itself asks for no further one)."""
+        return replace(self, max_candidates=self.dense_max_candidates, side_yaws=self.dense_side_yaws,
+                       tilted_pitches=self.dense_tilted_pitches, shallow_depths=self.dense_shallow_depths,
+                       dense_below=0.0)
 
 
 @dataclass(frozen=True)

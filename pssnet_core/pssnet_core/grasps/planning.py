@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,19 +23,42 @@ from pssnet_core.grasps.scoring import (
 )
 
 
-def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
-                  support_z: float, shares: np.ndarray, weights: np.ndarray | None = None,
-                  grip: np.ndarray | None = None) -> GraspSet:
+@dataclass
+class _Scored:
+    """One search's candidates and their checks against every completion, not yet ranked."""
+
+    candidates: GraspCandidates
+    holds: np.ndarray
+    secondary: np.ndarray
+    shares: np.ndarray
+    grip: np.ndarray | None
+
+    def concatenate(self, other: _Scored) -> _Scored:
+        return _Scored(GraspCandidates.concatenate([self.candidates, other.candidates]),
+                       np.concatenate([self.holds, other.holds]), np.concatenate([self.secondary, other.secondary]),
+                       np.concatenate([self.shares, other.shares]),
+                       None if self.grip is None else np.concatenate([self.grip, other.grip]))
+
+
+def _scores(holds: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
     if not holds.shape[1]:
-        scores = np.zeros(len(candidates))
-    elif weights is None:
-        scores = holds.mean(axis=1)
-    else:  # the weighted fraction: the share of the completions' weight a grasp holds for
-        scores = holds @ weights
+        return np.zeros(len(holds))
+    # The weighted fraction: the share of the completions' weight a grasp holds for.
+    return holds.mean(axis=1) if weights is None else holds @ weights
+
+
+def _ranking(scores: np.ndarray, secondary: np.ndarray, grip: np.ndarray | None) -> np.ndarray:
     # The expected grip first where given (GraspConfig.rank_by), then the score (a grasp that holds but grips with no
     # contact or weight share still ranks above one that holds for nothing), then the secondary term; stable.
     keys = (-secondary, -scores) if grip is None else (-secondary, -scores, -grip)
-    order = np.lexsort(keys)
+    return np.lexsort(keys)
+
+
+def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
+                  support_z: float, shares: np.ndarray, weights: np.ndarray | None = None,
+                  grip: np.ndarray | None = None) -> GraspSet:
+    scores = _scores(holds, weights)
+    order = _ranking(scores, secondary, grip)
     c = candidates.subset(order)
     poses = np.tile(np.eye(4), (len(c), 1, 1))
     poses[:, :3, :3] = np.einsum("ij,kjl->kil", pose.rotation, c.rotations)
@@ -44,6 +68,32 @@ def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.
                     secondary=secondary[order], kinds=kinds, grid=c, support_z=float(support_z),
                     voxel_size=float(pose.voxel_size), weight_shares=shares[order],
                     grip=None if grip is None else grip[order])
+
+
+def _search(bits: PackedGrids, union: np.ndarray, pose: GridPose, points: np.ndarray | None, config: GraspConfig,
+            support_z: float, allowed: Callable[[GraspCandidates], np.ndarray] | None,
+            weights: np.ndarray | None) -> _Scored:
+    candidates = candidates_from_packed(bits, union, pose, points, config, support_z, allowed)
+    checks = checks_from_packed(candidates, bits, pose, support_z, config)
+    if config.observed_points_check and points is not None and len(points):
+        # Surface the camera saw is part of every plausible shape: a finger or the palm in it hits each completion.
+        finger, palm = observed_point_hits(candidates, pose.camera_to_grid(points),
+                                           VoxelDims.of(config, pose.voxel_size), checks.holds.any(axis=1))
+        checks.finger_hit[finger] = True
+        checks.palm_hit[palm] = True
+    holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
+    grip = expected_grip(checks, weights) if config.rank_by == "expected_grip" else None
+    return _Scored(candidates, holds, secondary, weight_shares(checks, weights), grip)
+
+
+def _needs_denser_search(scored: _Scored, weights: np.ndarray | None, config: GraspConfig) -> bool:
+    """Whether the best grasp found holds less than ``config.dense_below`` of the weight (or none holds at all)."""
+    if config.dense_below <= 0.0:
+        return False
+    if not len(scored.candidates):
+        return True
+    best = _ranking(_scores(scored.holds, weights), scored.secondary, scored.grip)[0]
+    return bool(scored.shares[best] < config.dense_below)
 
 
 def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None = None,
@@ -78,18 +128,15 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
         support_z = support_height_of(occupancy, pose, points, known_occupied)
     # Packed once: candidates and scores read the same bit words.
     bits = PackedGrids(occupancy)
-    candidates = candidates_from_packed(bits, occupancy.any(axis=0), pose, points, config, support_z, allowed)
-    checks = checks_from_packed(candidates, bits, pose, support_z, config)
-    if config.observed_points_check and points is not None and len(points):
-        # Surface the camera saw is part of every plausible shape: a finger or the palm in it hits each completion.
-        finger, palm = observed_point_hits(candidates, pose.camera_to_grid(points),
-                                           VoxelDims.of(config, pose.voxel_size), checks.holds.any(axis=1))
-        checks.finger_hit[finger] = True
-        checks.palm_hit[palm] = True
-    holds, secondary = holds_and_secondary(checks, candidates, config, pose.voxel_size)
-    grip = expected_grip(checks, weights) if config.rank_by == "expected_grip" else None
-    return _to_grasp_set(candidates, holds, secondary, pose, support_z, weight_shares(checks, weights), weights,
-                         grip)
+    union = occupancy.any(axis=0)
+    scored = _search(bits, union, pose, points, config, support_z, allowed, weights)
+    if _needs_denser_search(scored, weights, config):
+        # The weight check rates grasps it calls firm well (105 of 107 such oracle grasps lifted the mug in the
+        # trials); where none is, a denser search usually offers one (results/grasp_trials/oracle_slips/). Searching
+        # densely only then keeps most views at the default's cost: a solid box's best grasp is nearly always firm.
+        scored = scored.concatenate(_search(bits, union, pose, points, config.denser(), support_z, allowed, weights))
+    return _to_grasp_set(scored.candidates, scored.holds, scored.secondary, pose, support_z, scored.shares, weights,
+                         scored.grip)
 
 
 def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, points: np.ndarray | None = None,

@@ -38,6 +38,11 @@ class GraspCandidates:
     def empty(cls) -> GraspCandidates:
         return cls(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0, np.int8))
 
+    @classmethod
+    def concatenate(cls, parts: list[GraspCandidates]) -> GraspCandidates:
+        return cls(*(np.concatenate([getattr(c, f) for c in parts]) for f in ("origins", "rotations", "widths",
+                                                                              "kinds")))
+
 
 @dataclass
 class GraspSet:
