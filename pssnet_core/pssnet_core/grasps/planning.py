@@ -54,19 +54,18 @@ def _ranking(scores: np.ndarray, secondary: np.ndarray, grip: np.ndarray | None)
     return np.lexsort(keys)
 
 
-def _to_grasp_set(candidates: GraspCandidates, holds: np.ndarray, secondary: np.ndarray, pose: GridPose,
-                  support_z: float, shares: np.ndarray, weights: np.ndarray | None = None,
-                  grip: np.ndarray | None = None) -> GraspSet:
+def _to_grasp_set(scored: _Scored, pose: GridPose, support_z: float, weights: np.ndarray | None = None) -> GraspSet:
+    holds, secondary, grip = scored.holds, scored.secondary, scored.grip
     scores = _scores(holds, weights)
     order = _ranking(scores, secondary, grip)
-    c = candidates.subset(order)
+    c = scored.candidates.subset(order)
     poses = np.tile(np.eye(4), (len(c), 1, 1))
     poses[:, :3, :3] = np.einsum("ij,kjl->kil", pose.rotation, c.rotations)
     poses[:, :3, 3] = pose.grid_to_camera(c.origins) if len(c) else np.zeros((0, 3))
     kinds = np.array([KIND_NAMES[i] for i in c.kinds], dtype=object)
     return GraspSet(poses=poses, widths=c.widths * pose.voxel_size, scores=scores[order], holds=holds[order],
                     secondary=secondary[order], kinds=kinds, grid=c, support_z=float(support_z),
-                    voxel_size=float(pose.voxel_size), weight_shares=shares[order],
+                    voxel_size=float(pose.voxel_size), weight_shares=scored.shares[order],
                     grip=None if grip is None else grip[order])
 
 
@@ -101,7 +100,8 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
                 support_z: float | None = None,
                 allowed: Callable[[GraspCandidates], np.ndarray] | None = None,
                 weights: np.ndarray | None = None) -> GraspSet:
-    """Completions in, grasps ranked by the fraction of completions they hold for out.
+    """Completions in, grasps ranked by the fraction of completions they hold for out (searched again, denser, where
+    the best grasp holds less than ``config.dense_below`` of the weight: :class:`GraspConfig`).
 
     Args:
         occupancy: (S, N, N, N) bool sampled completions (floats are thresholded at 0.5).
@@ -135,8 +135,7 @@ def plan_grasps(occupancy: np.ndarray, pose: GridPose, points: np.ndarray | None
         # trials); where none is, a denser search usually offers one (results/grasp_trials/oracle_slips/). Searching
         # densely only then keeps most views at the default's cost: a solid box's best grasp is nearly always firm.
         scored = scored.concatenate(_search(bits, union, pose, points, config.denser(), support_z, allowed, weights))
-    return _to_grasp_set(scored.candidates, scored.holds, scored.secondary, pose, support_z, scored.shares, weights,
-                         scored.grip)
+    return _to_grasp_set(scored, pose, support_z, weights)
 
 
 def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, points: np.ndarray | None = None,
@@ -157,12 +156,13 @@ def single_completion_choice(occupancy: np.ndarray, pose: GridPose, index: int, 
         support_z = support_height_of(occupancy, pose, points, known_occupied)
     alone = plan_grasps(occupancy[index:index + 1], pose, points, config, support_z=support_z)
     if len(alone) == 0 or alone.scores[0] <= 0.0:
-        empty = _to_grasp_set(GraspCandidates.empty(), np.zeros((0, occupancy.shape[0]), bool), np.zeros(0),
-                              pose, support_z, np.zeros(0))
+        nothing = _Scored(GraspCandidates.empty(), np.zeros((0, occupancy.shape[0]), bool), np.zeros(0), np.zeros(0),
+                          None)
+        empty = _to_grasp_set(nothing, pose, support_z)
         return SingleCompletionChoice(index=index, grasp=empty, score_alone=0.0, score_all=0.0)
     best = alone.grid.subset(np.array([0]))
     checks = check_grasps(best, occupancy, pose, support_z, config)
     holds, secondary = holds_and_secondary(checks, best, config, pose.voxel_size)
-    grasp = _to_grasp_set(best, holds, secondary, pose, support_z, weight_shares(checks))
+    grasp = _to_grasp_set(_Scored(best, holds, secondary, weight_shares(checks), None), pose, support_z)
     return SingleCompletionChoice(index=index, grasp=grasp, score_alone=float(alone.scores[0]),
                                   score_all=float(grasp.scores[0]))
