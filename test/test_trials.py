@@ -15,7 +15,7 @@ os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo's first import 
 
 import gzip
 import json
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -48,6 +48,7 @@ from pssnet_core.trials.run import (
     calibration_lines,
     config_of_run,
     paired_lines,
+    pooled_records,
     read_run_records,
     run_trials,
     wilson_interval,
@@ -310,6 +311,38 @@ def test_paired_comparison_counts_the_scenes_only_one_strategy_lifted():
     # 8 scenes only PSSNet lifted, none only the other: two-sided sign test p = 2 / 2^8.
     assert "one_completion +8/-0 (p=0.0078)" in line and "oracle +0/-0 (p=1)" in line
     assert paired_lines(records, ("box_slit",), ("one_completion", "oracle")) == []
+
+
+def test_pooled_runs_pair_scenes_by_scene_set_and_index_not_by_index_alone(tmp_path):
+    def run(name, seed, outcomes, strategy, objects="procedural"):
+        directory = tmp_path / name
+        directory.mkdir()
+        fingerprint = TrialsConfig(seed=seed, scenario=ScenarioConfig(objects=objects)).fingerprint()
+        (directory / "settings.json").write_text(json.dumps(fingerprint))
+        lines = [json.dumps(asdict(TrialRecord("box_slit", i, strategy, outcome, 1.0, "top", 0.05, 10, 0.15, 1.0,
+                                               "", {}))) for i, outcome in enumerate(outcomes)]
+        (directory / "records.jsonl").write_text("\n".join(lines) + "\n")
+        return directory
+
+    a0 = run("a0", 0, ["success", "success", "missed"], "pssnet")
+    a1 = run("a1", 1, ["success", "success"], "pssnet")
+    # The other strategy's runs in another order; seed 1's scenes 0 and 1 are not seed 0's.
+    b1 = run("b1", 1, ["missed", "missed"], "vae")
+    b0 = run("b0", 0, ["success", "missed", "success"], "vae")
+    records = pooled_records([("A", "pssnet", [a0, a1]), ("B", "vae", [b1, b0])])
+    assert len(records) == 10 and len({r.index for r in records}) == 5
+    (line,) = paired_lines(records, ("box_slit",), ("A", "B"), reference="A")
+    # Only A: seed 0 scene 1, seed 1 scenes 0 and 1; only B: seed 0 scene 2 (by index alone it would be +2/-1).
+    assert "B +3/-1" in line
+    # Other objects are another scene set: nothing pairs with the procedural runs.
+    other = run("oof", 0, ["missed"] * 3, "vae", objects="independent")
+    (line,) = paired_lines(pooled_records([("A", "pssnet", [a0]), ("B", "vae", [other])]), ("box_slit",), ("A", "B"),
+                           reference="A")
+    assert "B +0/-0" in line
+    with pytest.raises(ValueError, match="two of its runs"):
+        pooled_records([("A", "pssnet", [a0, a0])])
+    with pytest.raises(ValueError, match="no records of 'oracle'"):
+        pooled_records([("A", "oracle", [a0])])
 
 
 def test_the_calibration_table_bins_the_chosen_grasps_by_score_and_weight_share():

@@ -11,8 +11,8 @@ import gzip
 import json
 import math
 import sys
-from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -382,6 +382,47 @@ def read_run_records(directory: Path) -> list[TrialRecord]:
     """A run directory's records: its records.jsonl, or records.jsonl.gz as committed under results/."""
     plain = directory / "records.jsonl"
     return read_records(plain if plain.is_file() else directory / "records.jsonl.gz")
+
+
+def scene_set_of_run(directory: Path) -> str:
+    """What decides a run's scenes and how they play out, as one string: its master seed and its scenario and
+    physics settings (not the scene cache's location). Runs with the same string showed their strategies the same
+    scene at each index; :func:`pooled_records` pairs them by it."""
+    settings = json.loads((directory / "settings.json").read_text())
+    scenario = {key: value for key, value in settings["scenario"].items() if key != "cache_dir"}
+    return json.dumps({"seed": settings["seed"], "scenario": scenario, "physics": settings["physics"]},
+                      sort_keys=True)
+
+
+def pooled_records(comparisons: Sequence[tuple[str, str, Sequence[Path]]]) -> list[TrialRecord]:
+    """The records of several runs per compared strategy, as one set of scenes.
+
+    Each comparison is (label, strategy, run directories): the records of ``strategy`` in those runs, relabelled
+    ``label``. Every scene is numbered anew by its scene set (:func:`scene_set_of_run`) and index, one numbering for
+    all comparisons, so that records of the same scene pair (:func:`paired_lines`) and scenes of different sets
+    (other seeds, other objects) add up instead of pairing by index alone.
+
+    Raises:
+        ValueError: a comparison has a scene twice (two runs of one scene set) or no record of its strategy.
+    """
+    keyed: list[tuple[tuple[str, str, int], TrialRecord]] = []
+    for label, strategy, directories in comparisons:
+        seen: set[tuple[str, str, int]] = set()
+        for directory in directories:
+            scenes = scene_set_of_run(directory)
+            for record in read_run_records(directory):
+                if record.strategy != strategy:
+                    continue
+                key = (scenes, record.scenario, record.index)
+                if key in seen:
+                    raise ValueError(f"{label}: scene {record.index} of {record.scenario} is in two of its runs "
+                                     f"({directory} repeats a scene set)")
+                seen.add(key)
+                keyed.append((key, replace(record, strategy=label)))
+        if not seen:
+            raise ValueError(f"{label}: no records of {strategy!r} in {', '.join(map(str, directories))}")
+    numbers = {key: number for number, key in enumerate(sorted({key for key, _ in keyed}))}
+    return [replace(record, index=numbers[key]) for key, record in keyed]
 
 
 def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress: bool = True) -> list[TrialRecord]:
