@@ -329,6 +329,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     bad = {name: c for name, c in codes.items() if c != 0}
     if bad and code == 0:
         print(f"[demo] error: processes exited with {bad}", file=sys.stderr)
+        for process in (camera, node.process):
+            if process is not None and process.name in bad:  # what it said last says why
+                print(f"[demo] last output of {process.name}:\n" + "\n".join(process.lines()[-30:]), file=sys.stderr)
         code = 1
     if leftovers:
         print(f"[demo] warning: stale shared memory left: {sorted(leftovers)}", file=sys.stderr)
