@@ -1,7 +1,7 @@
 """Pairs grasp-trial runs made separately on the same scenes: each strategy against the first, scene by scene,
 with the exact sign test of the scenes only one of them lifted (`pssnet_core.trials.run.paired_lines`, as in each
 run's own summary.md). A comparison may pool several runs (comma-separated directories, e.g. the same strategy on
-seeds 0-4): scenes are matched by their run's seed and scenario settings and their index
+seeds 0-4): scenes are matched by their run's seed, scenario and physics settings and their index
 (`pssnet_core.trials.run.pooled_records`), so runs of other seeds add scenes instead of pairing by index.
 
     .venv/bin/python scripts/pair_trials.py results/second_look/mug:pssnet_second_look \\
