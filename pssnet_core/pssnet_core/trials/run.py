@@ -386,12 +386,11 @@ def read_run_records(directory: Path) -> list[TrialRecord]:
 
 def scene_set_of_run(directory: Path) -> str:
     """What decides a run's scenes and how they play out, as one string: its master seed and its scenario and
-    physics settings (not the scene cache's location). Runs with the same string showed their strategies the same
-    scene at each index; :func:`pooled_records` pairs them by it."""
+    physics settings (as :meth:`TrialsConfig.fingerprint` recorded them, without the scene cache's location). Runs
+    with the same string showed their strategies the same scene at each index; :func:`pooled_records` pairs them by
+    it."""
     settings = json.loads((directory / "settings.json").read_text())
-    scenario = {key: value for key, value in settings["scenario"].items() if key != "cache_dir"}
-    return json.dumps({"seed": settings["seed"], "scenario": scenario, "physics": settings["physics"]},
-                      sort_keys=True)
+    return json.dumps({key: settings[key] for key in ("seed", "scenario", "physics")}, sort_keys=True)
 
 
 def pooled_records(comparisons: Sequence[tuple[str, str, Sequence[Path]]]) -> list[TrialRecord]:
