@@ -208,6 +208,7 @@ class TestSetsConfig:
         progress: tqdm bars.
     """
 
+    __test__ = False  # a config, not a pytest class (test modules import it by its name)
     data: str
     sets: tuple[str, ...] = PAPER_TEST_SETS
     max_observations: int | None = None
