@@ -12,7 +12,7 @@ endif
 export PYTHONUNBUFFERED := 1
 
 .PHONY: setup demo test test-slow test-py312 lint colcon colcon-test clean datasets train-all results results-shipped oof-data oof-ambiguity \
-	datasets-edged finetune-edged finetune-edged_control
+	datasets-edged finetune-edged finetune-edged_control datasets-slits finetune-slits finetune-slits_control
 
 # VENV=DIR builds and uses another venv (scripts/setup.sh reads it as PSSNET_VENV).
 setup:
@@ -183,3 +183,26 @@ finetune-edged finetune-edged_control: finetune-edged%: setup
 	  --epochs 1000 --threads 1 --val-every 500 --no-progress --seed 0 \
 	  $(if $(wildcard $(RUNS)/ft_edged$*/last.pt),--resume,--init-from $(SHIPPED))
 	$(PSSNET) export-model $(RUNS)/ft_edged$*/best.pt $(RUNS)/ft_edged$*/export.pt
+
+# ---- Issue 25: mugs behind slits too (results/slit_mugs/). `--scale slits` mugs (half their views through the ycb
+# objects' random slits, the cameras of `--scale large` view for view) against `--scale large` mugs of the same
+# number, the same ycb objects in both; the shipped model fine-tuned on each at lr 1e-4 for SLITS_STEPS steps.
+SLITS_YCB_OBJECTS ?= 6000
+SLITS_MUG_OBJECTS ?= 3000
+SLITS_STEPS ?= 8000
+
+datasets-slits: setup
+	$(PSSNET) dataset build --family ycb --split train --scale large --num-objects $(SLITS_YCB_OBJECTS) \
+	  --out data/slits --grid 32 --workers 2 --quiet
+	$(PSSNET) dataset build --family mugs --split train --scale slits --num-objects $(SLITS_MUG_OBJECTS) \
+	  --out data/slits --grid 32 --workers 2 --quiet
+	$(PSSNET) dataset build --family mugs --split train --scale large --num-objects $(SLITS_MUG_OBJECTS) \
+	  --out data/slits_control --grid 32 --workers 2 --quiet
+
+# make -j2 finetune-slits finetune-slits_control (resumable)
+finetune-slits finetune-slits_control: finetune-slits%: setup
+	$(PSSNET) train --model pssnet --data data/slits/train/ycb,data/slits$*/train/mugs \
+	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/ft_slits$* --max-steps $(SLITS_STEPS) --lr 1e-4 \
+	  --epochs 1000 --threads 1 --val-every 500 --no-progress --seed 0 \
+	  $(if $(wildcard $(RUNS)/ft_slits$*/last.pt),--resume,--init-from $(SHIPPED))
+	$(PSSNET) export-model $(RUNS)/ft_slits$*/best.pt $(RUNS)/ft_slits$*/export.pt

@@ -19,6 +19,7 @@ from pssnet_core.data.datasets import (
     dataset_specs,
     full_images,
     make_sample,
+    plan_view,
     rerender,
     sample_intrinsics,
 )
@@ -290,7 +291,7 @@ def test_make_sample_is_independent_of_order():
 def test_specs_defaults_splits_and_errors():
     train = {s.name: s for s in dataset_specs("all", "train")}
     test = {s.name: s for s in dataset_specs("all", "test")}
-    assert set(train) == {"mugs", "ycb"} and set(test) == {"mugs", "ycb_narrow", "ycb_wide"}
+    assert set(train) == {"mugs", "ycb"} and set(test) == {"mugs", "mugs_narrow", "ycb_narrow", "ycb_wide"}
     assert 10_000 <= sum(s.num_samples for s in train.values()) <= 20_000
     assert all(500 <= s.num_samples <= 1000 for s in test.values())
     assert train["mugs"].views == 72 and train["ycb"].views == 24
@@ -405,12 +406,45 @@ def test_broad_scale_mixes_prior_breaking_families_and_hides_mug_handles_behind_
     assert all(s["slit_width_m"] is not None and s["family"] == "mug_broad" for s in samples)
 
 
+def test_slits_scale_shows_half_the_mug_views_through_a_slit_with_the_cameras_of_large():
+    slits = {s.name: s for s in dataset_specs("all", "train", scale="slits", num_objects=8)}
+    large = {s.name: s for s in dataset_specs("all", "train", scale="large", num_objects=8)}
+    assert slits["ycb"] == large["ycb"] and slits["mugs"].slit_range_m == large["ycb"].slit_range_m
+    for split in ("val", "test"):
+        assert dataset_specs("all", split, scale="slits") == dataset_specs("all", split)
+    plans = [(plan_view(slits["mugs"], i), plan_view(large["mugs"], i)) for i in range(64)]
+    slitted = [a.slit is not None for a, _ in plans]
+    assert 16 <= sum(slitted) <= 48 and not any(b.slit for _, b in plans)
+    # Only the slit differs: the same yaw, camera and noise as the mugs of --scale large, view for view.
+    assert all(dataclasses.replace(a, slit=None) == b for a, b in plans)
+    with pytest.raises(DatasetSpecError, match="slit_fraction"):
+        dataclasses.replace(slits["mugs"], slit_fraction=1.5)
+
+
+def test_mug_test_sets_behind_the_narrow_slit_pair_with_the_open_ones_view_by_view():
+    specs = {s.name: s for s in dataset_specs("mugs", "test", grid_size=16, num_objects=2, views=6)}
+    assert list(specs) == ["mugs", "mugs_narrow"]
+    narrow = specs["mugs_narrow"]
+    assert (narrow.slit_mode, narrow.slit_width_m, narrow.stream) == ("fixed", 0.036, "mugs")
+    identity = narrow.object_identities()[0]
+    assert identity == specs["mugs"].object_identities()[0]
+    scene = ObjectScene(make_shape(identity.family, identity.seed))
+    for i in range(3):
+        seen, slitted = make_sample(specs["mugs"], i, scene), make_sample(narrow, i, scene)
+        assert slitted["camera_pose"] == seen["camera_pose"] and slitted["object_pose"] == seen["object_pose"]
+        assert slitted["mask"].sum() < seen["mask"].sum() and slitted["slit_width_m"] == 0.036
+        assert not (slitted["known_occupied"] & seen["known_free"]).any()  # the same scene, less of it seen
+    oof = {s.name: s for s in dataset_specs("oof", "test", num_objects=2)}
+    assert oof["oof_mugs_narrow"].identities == oof["oof_mugs"].identities
+    assert oof["oof_mugs_narrow"].stream == "oof_mugs" and oof["oof_mugs_narrow"].slit_width_m == 0.036
+
+
 def test_a_build_spec_written_before_a_field_existed_still_resumes(tmp_path):
     spec = dataset_specs("mugs", "train", grid_size=16, num_objects=1, views=2)[0]
     first = build_dataset(spec, tmp_path / "a", progress=False)
     spec_file = first.path / "build_spec.json"
     old = json.loads(spec_file.read_text())
-    for field in ("noise_fraction", "random_yaw"):
+    for field in ("noise_fraction", "random_yaw", "slit_fraction"):
         del old["spec"][field]
     spec_file.write_text(json.dumps(old))
     again = build_dataset(spec, first.path, progress=False)

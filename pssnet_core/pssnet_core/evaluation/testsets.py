@@ -14,12 +14,15 @@ from pssnet_core.geometry import CameraIntrinsics, GridConfig, GridPose
 
 #: test-set names of the paper's experiments, as the data module names its test directories
 PAPER_TEST_SETS: tuple[str, ...] = ("mugs", "ycb_narrow", "ycb_wide")
-#: the out-of-family test sets (objects of the independent generator and real modelled ones), the same experiments
-OOF_TEST_SETS: tuple[str, ...] = ("oof_mugs", "oof_narrow", "oof_wide")
+#: the out-of-family test sets (objects of the independent generator and real modelled ones), the same experiments,
+#: and the mugs seen through the narrow slit (no training set shows a mug behind a slit)
+OOF_TEST_SETS: tuple[str, ...] = ("oof_mugs", "oof_mugs_narrow", "oof_narrow", "oof_wide")
+#: this project's test mugs' views through the narrow slit (built with ``mugs``)
+MUGS_NARROW = "mugs_narrow"
 #: every test set the evaluation knows
-TEST_SETS: tuple[str, ...] = PAPER_TEST_SETS + OOF_TEST_SETS
+TEST_SETS: tuple[str, ...] = PAPER_TEST_SETS + (MUGS_NARROW,) + OOF_TEST_SETS
 #: test sets of the mug experiment (yaw steps; hidden and visible handles)
-MUG_SETS: tuple[str, ...] = ("mugs", "oof_mugs")
+MUG_SETS: tuple[str, ...] = ("mugs", MUGS_NARROW, "oof_mugs", "oof_mugs_narrow")
 #: test sets behind the narrow slit (the hidden extent of boxes)
 NARROW_SETS: tuple[str, ...] = ("ycb_narrow", "oof_narrow")
 
