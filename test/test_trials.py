@@ -264,6 +264,18 @@ def test_scenes_are_deterministic_and_the_slit_hides_the_box_depth(factory):
     assert not np.array_equal(first.view.depth, other.view.depth)
 
 
+def test_a_mug_behind_the_slit_is_seen_only_through_it_turned_anywhere(factory):
+    scenes = [factory.scene("mug_slit", i) for i in range(4)]
+    assert all(s.physics.shape.handle is not None for s in scenes)
+    assert [b.name for b in scenes[0].physics.clutter] == ["block", "block", "wall"]
+    for scene in scenes:
+        view = scene.view
+        seen_columns = np.flatnonzero(view.mask.any(axis=0))
+        assert (seen_columns[-1] - seen_columns[0] + 1) * view.object_depth / view.intrinsics.fx < 0.045
+        assert scene.yaw_range_deg == (-180.0, 180.0) and -180.0 <= scene.notes["yaw_deg"] < 180.0
+    assert len({round(s.notes["yaw_deg"]) for s in scenes}) == 4
+
+
 def test_the_oracle_lifts_a_box_in_full_view(factory, strategist):
     scene = factory.scene("control", 0)  # even control scenes show a box
     assert scene.physics.shape.identity.family == "box" and not scene.physics.clutter

@@ -11,8 +11,12 @@ reports success rates (:mod:`~pssnet_core.trials.run`).
 #: before it imports the trial modules; a program that imports :mod:`pssnet_core.trials.physics` itself sets it first.
 HEADLESS_GL = "egl"
 
-#: the scenes (:mod:`pssnet_core.trials.scenarios`)
+#: the scenes (:mod:`pssnet_core.trials.scenarios`) a run takes by default
 SCENARIOS = ("mug_hidden_handle", "box_slit", "control")
+#: run only when asked for: a mug behind the box's slit (no training set of the shipped model shows a mug behind one)
+EXTRA_SCENARIOS = ("mug_slit",)
+#: every scene a run can be asked for
+ALL_SCENARIOS = SCENARIOS + EXTRA_SCENARIOS
 #: where the scenes' objects come from (``ScenarioConfig.objects``): the training data's generator, or the
 #: out-of-family generator (:mod:`pssnet_core.shapes.independent`)
 OBJECT_SOURCES = ("procedural", "independent")

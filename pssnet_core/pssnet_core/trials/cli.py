@@ -12,7 +12,9 @@ from typing import TYPE_CHECKING
 from pssnet_core.grasps.config import RANKINGS, GraspConfig
 from pssnet_core.options import config_with
 from pssnet_core.trials import (
+    ALL_SCENARIOS,
     DEFAULT_STRATEGIES,
+    EXTRA_SCENARIOS,
     HEADLESS_GL,
     LOOK_MIN_SEPARABILITY,
     OBJECT_SOURCES,
@@ -46,8 +48,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pssnet-checkpoint", default=None, help="PSSNet checkpoint (default: the shipped model)")
     p.add_argument("--vae-checkpoint", default=None, help="VAE checkpoint (needed by the vae strategy)")
     p.add_argument("--trials", type=int, default=200, help="scenes per scenario; every strategy gets each scene")
-    p.add_argument("--scenarios", type=lambda t: _names(t, SCENARIOS, "scenarios"), default=SCENARIOS,
-                   help=f"comma-separated (default {','.join(SCENARIOS)})")
+    p.add_argument("--scenarios", type=lambda t: _names(t, ALL_SCENARIOS, "scenarios"), default=SCENARIOS,
+                   help=f"comma-separated (default {','.join(SCENARIOS)}; also {','.join(EXTRA_SCENARIOS)})")
     p.add_argument("--strategies", type=lambda t: _names(t, STRATEGIES, "strategies"), default=None,
                    help=f"comma-separated, of {','.join(STRATEGIES)} (default {','.join(DEFAULT_STRATEGIES)}, and vae "
                         "with --vae-checkpoint)")
