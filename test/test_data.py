@@ -341,7 +341,9 @@ def test_cli_build_preview_stats(tmp_path, capsys):
     assert "mug" in text and "4 samples" in text
     png = tmp_path / "sheet.png"
     assert run_cli(["dataset", "preview", str(out), "--out", str(png), "--count", "2"]) == 0
-    assert png.stat().st_size > 10_000
+    # The mug test split is two datasets (the open views and the same views through the slit): a sheet each.
+    for name in ("mugs", "mugs_narrow"):
+        assert (tmp_path / f"sheet_test_{name}.png").stat().st_size > 10_000
     # Bad input: a clear error and exit code 2, not a traceback.
     assert run_cli(["dataset", "stats", str(tmp_path / "nothing")]) == 2
     assert "no dataset" in capsys.readouterr().err

@@ -24,7 +24,8 @@ compared as grid x extents (voxels). The same three figures (``coverage`` within
 plausible extents), plus the extents in millimetres and whether the range is open-ended.
 
 Which test sets: ``sets`` names one mug set (``mugs`` or ``oof_mugs``, of any mug family: procedural, independent
-or real) and/or one narrow-slit set (``ycb_narrow`` or ``oof_narrow``); meshes come from
+or real, or their views through the narrow slit, ``mugs_narrow`` and ``oof_mugs_narrow``) and/or one narrow-slit
+set (``ycb_narrow`` or ``oof_narrow``); meshes come from
 :func:`pssnet_core.shapes.shape_of`, whatever made the object.
 
 The plausible sets are model-independent: :func:`run_ambiguity` computes them once per view and caches them
@@ -170,8 +171,8 @@ class AmbiguityConfig:
     Attributes:
         data: directory holding the test sets (``DATA/mugs`` or ``DATA/test/mugs``, ``.../ycb_narrow``).
         out: output directory (tables, figures, and the plausible-set cache under ``plausible_cache``).
-        sets: the test sets to measure: at most one mug set (``mugs``, ``oof_mugs``) and one narrow-slit set
-            (``ycb_narrow``, ``oof_narrow``).
+        sets: the test sets to measure: at most one mug set (``mugs``, ``oof_mugs``, or either through the narrow
+            slit, ``mugs_narrow``, ``oof_mugs_narrow``) and one narrow-slit set (``ycb_narrow``, ``oof_narrow``).
         samples: completions per view (>= 2, to measure a spread).
         box_temperatures: box temperatures for models with a box part (others run at 1.0 only).
         max_views: at most this many views of each kind (hidden handle, visible handle, slit), evenly spaced.

@@ -150,7 +150,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     a.add_argument("--data", required=True, help="directory holding the test sets (mugs, ycb_narrow)")
     a.add_argument("--sets", default="mugs,ycb_narrow",
                    help="one mug set and/or one narrow-slit set (default mugs,ycb_narrow; the out-of-family ones: "
-                        "oof_mugs,oof_narrow)")
+                        "oof_mugs,oof_narrow; the mugs through the narrow slit: mugs_narrow, oof_mugs_narrow)")
     a.add_argument("--samples", type=int, default=20, help="completions per view")
     _add_sampler_options(a)
     a.add_argument("--box-temperatures", type=_floats, default=(1.0,),
