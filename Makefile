@@ -176,13 +176,11 @@ datasets-edged: setup
 	$(PSSNET) dataset build --family ycb --split train --scale large --num-objects $(EDGED_YCB_OBJECTS) \
 	  --out data/edged_control --grid 32 --workers 2 --quiet
 
-# make -j2 finetune-edged finetune-edged_control (resumable)
-finetune-edged finetune-edged_control: finetune-edged%: setup
-	$(PSSNET) train --model pssnet --data data/edged$*/train/ycb,data/edged/train/mugs \
-	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/ft_edged$* --max-steps $(EDGED_STEPS) --lr 1e-4 \
-	  --epochs 1000 --threads 1 --val-every 500 --no-progress --seed 0 \
-	  $(if $(wildcard $(RUNS)/ft_edged$*/last.pt),--resume,--init-from $(SHIPPED))
-	$(PSSNET) export-model $(RUNS)/ft_edged$*/best.pt $(RUNS)/ft_edged$*/export.pt
+# make -j2 finetune-edged finetune-edged_control (resumable; the rule is below, with the slits' fine-tunes)
+FT_DATA_edged := data/edged/train/ycb,data/edged/train/mugs
+FT_DATA_edged_control := data/edged_control/train/ycb,data/edged/train/mugs
+FT_STEPS_edged = $(EDGED_STEPS)
+FT_STEPS_edged_control = $(EDGED_STEPS)
 
 # ---- Issue 25: mugs behind slits too (results/slit_mugs/). `--scale slits` mugs (half their views through the ycb
 # objects' random slits, the cameras of `--scale large` view for view) against `--scale large` mugs of the same
@@ -200,9 +198,16 @@ datasets-slits: setup
 	  --out data/slits_control --grid 32 --workers 2 --quiet
 
 # make -j2 finetune-slits finetune-slits_control (resumable)
-finetune-slits finetune-slits_control: finetune-slits%: setup
-	$(PSSNET) train --model pssnet --data data/slits/train/ycb,data/slits$*/train/mugs \
-	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/ft_slits$* --max-steps $(SLITS_STEPS) --lr 1e-4 \
+FT_DATA_slits := data/slits/train/ycb,data/slits/train/mugs
+FT_DATA_slits_control := data/slits/train/ycb,data/slits_control/train/mugs
+FT_STEPS_slits = $(SLITS_STEPS)
+FT_STEPS_slits_control = $(SLITS_STEPS)
+
+# The fine-tunes above: the shipped model at lr 1e-4 on FT_DATA_<name> for FT_STEPS_<name> steps -> RUNS/ft_<name>.
+LR_FINETUNES := edged edged_control slits slits_control
+$(addprefix finetune-,$(LR_FINETUNES)): finetune-%: setup
+	$(PSSNET) train --model pssnet --data $(FT_DATA_$*) \
+	  --val-data $(DATA)/val/mugs,$(DATA)/val/ycb --out $(RUNS)/ft_$* --max-steps $(FT_STEPS_$*) --lr 1e-4 \
 	  --epochs 1000 --threads 1 --val-every 500 --no-progress --seed 0 \
-	  $(if $(wildcard $(RUNS)/ft_slits$*/last.pt),--resume,--init-from $(SHIPPED))
-	$(PSSNET) export-model $(RUNS)/ft_slits$*/best.pt $(RUNS)/ft_slits$*/export.pt
+	  $(if $(wildcard $(RUNS)/ft_$*/last.pt),--resume,--init-from $(SHIPPED))
+	$(PSSNET) export-model $(RUNS)/ft_$*/best.pt $(RUNS)/ft_$*/export.pt
