@@ -21,7 +21,8 @@ The experiments (DESIGN.md, paper Sec. 5):
   visible width so that the slit always stays over the object's central part): 72 views per object.
 * ``mugs_narrow`` (test, built with ``mugs``): the very views of ``mugs`` (same stream) seen through the narrow
   slit (3.6 cm, centred on the mug), so that what the slit alone does to a completion is paired view by view;
-  ``oof_mugs_narrow`` likewise for ``oof_mugs``. No training set shows a mug behind a slit.
+  ``oof_mugs_narrow`` likewise for ``oof_mugs``. The default and ``large`` training sets (the shipped model's) show
+  no mug behind a slit.
 * ``oof_mugs``, ``oof_narrow``, ``oof_wide`` (test only, ``--family oof``): the out-of-family test sets, objects the
   training data never sees: mugs of the independent generator (:mod:`pssnet_core.shapes.independent`) and real
   modelled mugs (:mod:`pssnet_core.shapes.registry_objects`) turned like ``mugs`` in 15 degree steps; independent
@@ -369,9 +370,9 @@ def _oof_specs(common: dict[str, Any], num_objects: int | None) -> list[DatasetS
 def _behind_narrow_slit(mugs: DatasetSpec) -> DatasetSpec:
     """A mug test set's very views (same stream: objects, turns, cameras) seen through the narrow slit.
 
-    Why: every training set of this project shows mugs in the open and only YCB-like objects behind a slit
-    (``--scale large``), so a slit alone can tell a model "not a mug"; a mug between two other objects breaks that
-    habit, and the paired views say what the slit alone costs.
+    Why: the shipped model's training data (``--scale large``) shows mugs only in the open and YCB-like objects only
+    behind a slit, so a slit alone can tell a model "not a mug"; a mug between two other objects breaks that habit,
+    and the paired views say what the slit alone costs.
     """
     return replace(mugs, name=f"{mugs.name}_narrow", stream=mugs.stream or mugs.name, slit_mode="fixed",
                    slit_width_m=NARROW_SLIT_M)

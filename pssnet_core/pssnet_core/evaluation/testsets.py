@@ -15,7 +15,7 @@ from pssnet_core.geometry import CameraIntrinsics, GridConfig, GridPose
 #: test-set names of the paper's experiments, as the data module names its test directories
 PAPER_TEST_SETS: tuple[str, ...] = ("mugs", "ycb_narrow", "ycb_wide")
 #: the out-of-family test sets (objects of the independent generator and real modelled ones), the same experiments,
-#: and the mugs seen through the narrow slit (no training set shows a mug behind a slit)
+#: and the mugs seen through the narrow slit (the shipped model's training data shows no mug behind a slit)
 OOF_TEST_SETS: tuple[str, ...] = ("oof_mugs", "oof_mugs_narrow", "oof_narrow", "oof_wide")
 #: this project's test mugs' views through the narrow slit (built with ``mugs``)
 MUGS_NARROW = "mugs_narrow"
