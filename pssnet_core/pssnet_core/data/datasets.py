@@ -428,11 +428,13 @@ def plan_view(spec: DatasetSpec, index: int, attempt: int = 0) -> ViewPlan:
                 tuple(range(-(spec.translations // 2), spec.translations - spec.translations // 2))
             step = int(steps[step_index])
     slit = None
-    # A slit on only some views draws from a stream of its own: the camera draws below stay those without it.
-    slit_draws = rng if spec.slit_fraction >= 1.0 else _rng(spec, 3, index, attempt)
-    if spec.slit_mode == "random" and (spec.slit_fraction >= 1.0 or slit_draws.random() < spec.slit_fraction):
-        slit = Slit(width_m=float(slit_draws.uniform(*spec.slit_range_m)),
-                    offset_fraction=float(slit_draws.uniform(-spec.slit_offset_fraction, spec.slit_offset_fraction)))
+    if spec.slit_mode == "random":
+        # A slit on only some views draws from a stream of its own: the camera draws below stay those without it.
+        partial = spec.slit_fraction < 1.0
+        draws = _rng(spec, 3, index, attempt) if partial else rng
+        if not partial or draws.random() < spec.slit_fraction:
+            slit = Slit(width_m=float(draws.uniform(*spec.slit_range_m)),
+                        offset_fraction=float(draws.uniform(-spec.slit_offset_fraction, spec.slit_offset_fraction)))
     elif spec.slit_mode == "fixed":
         # The object moves across the fixed slit: equivalently the slit moves the other way over the object.
         slit = Slit(width_m=float(spec.slit_width_m), offset_m=-(step or 0) * spec.translation_step_m,
