@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import gzip
 
 import numpy as np
 import pytest
@@ -93,7 +94,10 @@ def test_cli_joins_two_evaluations_and_writes_markdown_and_csv(tmp_path, capsys)
     rng = np.random.default_rng(2)
     hardness = rng.uniform(1, 5, size=30)
     first = write_csv(tmp_path / "a" / "per_observation.csv", _rows("vae", hardness) + _rows("recgan", hardness + 2))
-    second = write_csv(tmp_path / "b" / "per_observation.csv", _rows("shipped", hardness - 0.5))
+    plain = write_csv(tmp_path / "b" / "per_observation.csv", _rows("shipped", hardness - 0.5))
+    second = plain.with_name("per_observation.csv.gz")  # results/ keeps them gzipped
+    second.write_bytes(gzip.compress(plain.read_bytes()))
+    plain.unlink()
     out = tmp_path / "cmp" / "comparison.md"
     assert main(["compare", "--per-observation", f"{first},{second}", "--methods", "shipped,recgan,vae",
                  "--baseline", "vae", "--resamples", "500", "--out", str(out)]) == 0

@@ -9,6 +9,7 @@ bootstrap of the mean paired difference (scipy.stats.bootstrap, resampling obser
 from __future__ import annotations
 
 import csv
+import gzip
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -62,13 +63,15 @@ class PairedDifference:
 
 
 def read_per_observation(paths: Iterable[str | Path]) -> list[dict[str, Any]]:
-    """Rows of one or more ``per_observation.csv`` files, with the fields the comparison needs typed."""
+    """Rows of one or more ``per_observation.csv`` files (plain or gzipped, as ``results/`` keeps them), with the
+    fields the comparison needs typed."""
     rows: list[dict[str, Any]] = []
     for path in paths:
         path = Path(path)
         if not path.is_file():
             raise CompareError(f"{path}: no such file")
-        with open(path, newline="") as f:
+        opener = gzip.open if path.suffix == ".gz" else open
+        with opener(path, "rt", newline="") as f:
             for line, row in enumerate(csv.DictReader(f), start=2):
                 try:
                     row["index"] = int(row["index"])
