@@ -423,6 +423,21 @@ def test_slits_scale_shows_half_the_mug_views_through_a_slit_with_the_cameras_of
         dataclasses.replace(slits["mugs"], slit_fraction=1.5)
 
 
+def test_a_smaller_slit_fraction_slits_a_subset_of_the_same_mug_views():
+    half = {s.name: s for s in dataset_specs("all", "train", scale="slits", num_objects=8)}["mugs"]
+    fifth = {s.name: s for s in dataset_specs("all", "train", scale="slits", num_objects=8, slit_fraction=0.2)}["mugs"]
+    assert fifth.slit_fraction == 0.2 and dataclasses.replace(fifth, slit_fraction=0.5) == half
+    plans = [(plan_view(fifth, i), plan_view(half, i)) for i in range(200)]
+    slitted = [a.slit is not None for a, _ in plans]
+    assert 20 <= sum(slitted) <= 60  # about 40 of 200
+    # The share drawn per view from the slit's own stream: each view slitted at 0.2 is slitted at 0.5, alike.
+    assert all(a == b for a, b in plans if a.slit is not None)
+    assert all(dataclasses.replace(a, slit=None) == dataclasses.replace(b, slit=None) for a, b in plans)
+    for scale, split in (("large", "train"), ("slits", "val")):
+        with pytest.raises(DatasetSpecError, match="slit fraction"):
+            dataset_specs("mugs", split, scale=scale, slit_fraction=0.2)
+
+
 def test_mug_test_sets_behind_the_narrow_slit_pair_with_the_open_ones_view_by_view():
     specs = {s.name: s for s in dataset_specs("mugs", "test", grid_size=16, num_objects=2, views=6)}
     assert list(specs) == ["mugs", "mugs_narrow"]

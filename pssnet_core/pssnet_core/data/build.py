@@ -138,13 +138,14 @@ def build_dataset(spec: DatasetSpec, root: str | Path, runner: TaskRunner | None
 def build(family: str, split: str, out: str | Path, grid_size: int = 32, runner: TaskRunner | None = None,
           seed: int = 0, num_objects: int | None = None, views: int | None = None, noise: Any = None,
           front_margin: float | None = None, bottom_margin: float | None = None,
-          progress: bool = True, scale: str = "default") -> list[BuildResult]:
+          progress: bool = True, scale: str = "default", slit_fraction: float | None = None) -> list[BuildResult]:
     """Builds every dataset of ``family`` ("mugs", "ycb", "all", "oof") and ``split`` under ``out``.
 
     See :func:`pssnet_core.data.datasets.dataset_specs` for the datasets and their defaults, and
     :func:`dataset_path` for where each goes. ``runner`` makes the shards (default: in this process).
     """
     specs = dataset_specs(family, split, grid_size=grid_size, seed=seed, num_objects=num_objects, views=views,
-                          noise=noise, front_margin=front_margin, bottom_margin=bottom_margin, scale=scale)
+                          noise=noise, front_margin=front_margin, bottom_margin=bottom_margin, scale=scale,
+                          slit_fraction=slit_fraction)
     fetch_archives(i for spec in specs for i in spec.object_identities())  # real objects: download before the tasks
     return [build_dataset(spec, dataset_path(out, spec), runner=runner, progress=progress) for spec in specs]

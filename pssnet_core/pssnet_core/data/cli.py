@@ -19,7 +19,7 @@ def _build(args: argparse.Namespace) -> int:
         results = build(args.family, args.split, args.out, grid_size=args.grid, runner=runner, seed=args.seed,
                         num_objects=args.num_objects, views=args.views, noise=SensorNoise() if args.noise else None,
                         front_margin=args.front_margin, bottom_margin=args.bottom_margin, progress=not args.quiet,
-                        scale=args.scale)
+                        scale=args.scale, slit_fraction=args.slit_fraction)
     for r in results:
         state = f"built {r.shards_built} shards" + (f", {r.shards_skipped} already there" if r.shards_skipped else "")
         print(f"{r.path}: {r.samples} samples ({state}) in {r.seconds:.1f} s")
@@ -113,6 +113,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "objects (3 of 7 are boxes); slits: as large, with half the mugs' views behind the ycb "
                         "objects' random slits; val and "
                         "test are the same at every scale")
+    b.add_argument("--slit-fraction", type=float, default=None,
+                   help="with --scale slits: the share of the mug views seen through a slit (default 0.5)")
     b.add_argument("--front-margin", type=float, default=None, help="grid front margin in voxels "
                    "(default GridConfig's; the node must use the same)")
     b.add_argument("--bottom-margin", type=float, default=None, help="grid bottom margin in voxels (likewise)")

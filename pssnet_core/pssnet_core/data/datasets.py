@@ -262,7 +262,7 @@ class DatasetSpec:
 def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, num_objects: int | None = None,
                   views: int | None = None, noise: SensorNoise | None = None,
                   front_margin: float | None = None, bottom_margin: float | None = None,
-                  scale: str = "default") -> list[DatasetSpec]:
+                  scale: str = "default", slit_fraction: float | None = None) -> list[DatasetSpec]:
     """The datasets of an experiment family and split.
 
     Args:
@@ -286,6 +286,8 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
             ycb objects, so that a slit no longer tells a model the object is not a mug); val and test are the
             same at every scale, so that
             models trained at any scale are validated and tested alike.
+        slit_fraction: with scale "slits" and the train split only: the share of the mug views seen through a
+            slit (default :data:`SLIT_MUG_FRACTION`).
     """
     if scale not in SCALES:
         raise DatasetSpecError(f"scale must be one of {SCALES}, got {scale!r}")
@@ -295,6 +297,8 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
         raise DatasetSpecError(f"split must be train, val or test, got {split!r}")
     if family == "oof" and split != "test":
         raise DatasetSpecError("the out-of-family sets (--family oof) are test sets only: use --split test")
+    if slit_fraction is not None and (scale != "slits" or split != "train"):
+        raise DatasetSpecError("a slit fraction belongs to --scale slits and the train split only")
     common: dict[str, Any] = {"split": split, "grid_size": grid_size, "seed": seed, "noise": noise}
     if front_margin is not None:
         common["front_margin"] = float(front_margin)
@@ -331,7 +335,8 @@ def dataset_specs(family: str, split: str, grid_size: int = 32, seed: int = 0, n
                  if s.is_mugs else replace(s, families=YCB_FAMILIES + ("box_broad", "can_broad", "bottle_broad"))
                  for s in specs]
     if scale == "slits" and split == "train":
-        specs = [replace(s, slit_mode="random", slit_fraction=SLIT_MUG_FRACTION) if s.is_mugs else s for s in specs]
+        fraction = SLIT_MUG_FRACTION if slit_fraction is None else float(slit_fraction)
+        specs = [replace(s, slit_mode="random", slit_fraction=fraction) if s.is_mugs else s for s in specs]
     if scale == "boxes" and split == "train":
         specs = [s if s.is_mugs else replace(s, families=YCB_FAMILIES + ("box_broad",) + EDGED_FAMILIES)
                  for s in specs]
