@@ -27,9 +27,8 @@ os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
 
 from pssnet_core.grasps import check_grasps  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
-from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed  # noqa: E402
+from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed, strategist_of  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
-from pssnet_core.trials.strategies import Strategist  # noqa: E402
 
 
 def main() -> None:
@@ -45,8 +44,7 @@ def main() -> None:
     missed = sorted((r.scenario, r.index) for r in read_run_records(args.run)
                     if r.strategy == "pssnet" and r.outcome == "missed")
     factory = SceneFactory(config.scenario, config.grasps.gripper)
-    strategist = Strategist(Completer.from_checkpoint(checkpoint, threads=1), None, config.grasps,
-                            config.num_samples, config.physics, config.scenario.clutter_margin)
+    strategist = strategist_of(config, Completer.from_checkpoint(checkpoint, threads=1))
     on_truth = []
     for scenario, index in missed:
         scene = factory.scene(scenario, index, config.seed)

@@ -27,9 +27,8 @@ from pssnet_core.grasps import GraspConfig  # noqa: E402
 from pssnet_core.grasps.config import VoxelDims  # noqa: E402
 from pssnet_core.grasps.lattice import gripper_part_boxes  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
-from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed  # noqa: E402
+from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed, strategist_of  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
-from pssnet_core.trials.strategies import Strategist  # noqa: E402
 
 STRATEGY = "pssnet_second_look"
 
@@ -53,8 +52,7 @@ def main() -> None:
     lifted = sorted(i for i, r in records.items() if r.success)[:args.successes]
     config = config_of_run(args.run)  # the scenes and planner as the run had them
     factory = SceneFactory(config.scenario)
-    strategist = Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, config.num_samples,
-                            config.physics, config.scenario.clutter_margin)
+    strategist = strategist_of(config, Completer.from_checkpoint(None, threads=1))
     with_points = {"failed": 0, "lifted": 0}
     for label, indices in (("failed", failed), ("lifted", lifted)):
         for index in indices:

@@ -29,9 +29,8 @@ os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
 from pssnet_core.grasps import check_grasps  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
 from pssnet_core.trials.physics import run_trial  # noqa: E402
-from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed  # noqa: E402
+from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed, strategist_of  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
-from pssnet_core.trials.strategies import Strategist  # noqa: E402
 
 LEVER_BINS = (0.0, 1.5, 3.0, np.inf)  # voxels
 SHARE_BINS = (0.0, 0.7, 0.9, 1.01)
@@ -63,8 +62,7 @@ def main() -> None:
     records = {r.index: r for r in read_run_records(args.run) if r.strategy == "oracle" and r.outcome != "no_grasp"}
     config = config_of_run(args.run)
     factory = SceneFactory(config.scenario, config.grasps.gripper)
-    strategist = Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, config.num_samples,
-                            config.physics, config.scenario.clutter_margin)
+    strategist = strategist_of(config, Completer.from_checkpoint(None, threads=1))
     rows = []
     for index, record in sorted(records.items()):
         scene = factory.scene(record.scenario, index, config.seed)

@@ -23,9 +23,8 @@ from pssnet_core.trials import HEADLESS_GL
 os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
 
 from pssnet_core.inference import Completer  # noqa: E402
-from pssnet_core.trials.run import config_of_run, scene_seed  # noqa: E402
+from pssnet_core.trials.run import config_of_run, scene_seed, strategist_of  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
-from pssnet_core.trials.strategies import Strategist  # noqa: E402
 
 
 def depth_extent(occupancy: np.ndarray) -> int:
@@ -43,8 +42,7 @@ def main() -> None:
     config = config_of_run(args.run)
     factory = SceneFactory(config.scenario, config.grasps.gripper)
     for checkpoint in args.checkpoints.split(","):
-        strategist = Strategist(Completer.from_checkpoint(checkpoint, threads=1), None, config.grasps,
-                                config.num_samples, config.physics, config.scenario.clutter_margin)
+        strategist = strategist_of(config, Completer.from_checkpoint(checkpoint, threads=1))
         size_ratios, depth_excess = [], []
         for index in range(args.scenes):
             scene = factory.scene("box_slit", index, config.seed)

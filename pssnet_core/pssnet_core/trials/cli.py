@@ -121,8 +121,7 @@ def trials_config(args: argparse.Namespace) -> TrialsConfig:
 def run_command(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)  # before MuJoCo is first imported (pssnet_core.trials)
     from pssnet_core.inference import CheckpointError, Completer
-    from pssnet_core.trials.run import markdown_table, run_trials, summarise
-    from pssnet_core.trials.strategies import Strategist
+    from pssnet_core.trials.run import markdown_table, run_trials, strategist_of, summarise
 
     try:
         config = trials_config(args)
@@ -133,10 +132,7 @@ def run_command(args: argparse.Namespace) -> int:
                              "--strategies)")
         pssnet = Completer.from_checkpoint(args.pssnet_checkpoint, threads=args.threads)
         vae = Completer.from_checkpoint(args.vae_checkpoint, threads=args.threads) if args.vae_checkpoint else None
-        strategist = Strategist(pssnet, vae, config.grasps, config.num_samples, config.physics,
-                                config.scenario.clutter_margin, config.sampler, config.sampler_options,
-                                config.look_threshold)
-        records = run_trials(config, strategist, args.out, progress=not args.no_progress)
+        records = run_trials(config, strategist_of(config, pssnet, vae), args.out, progress=not args.no_progress)
     except (CheckpointError, ValueError, OSError) as error:
         print(f"pssnet grasp-trials: error: {error}", file=sys.stderr)
         return 2

@@ -14,7 +14,7 @@ import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from pssnet_core.trials.collision import Faithfulness
 from pssnet_core.trials.physics import OUTCOMES, PhysicsConfig, PhysicsScene, TrialOutcome, build_model, run_trial
 from pssnet_core.trials.scenarios import ScenarioConfig, SceneFactory
 from pssnet_core.trials.strategies import Choice, Strategist
+
+if TYPE_CHECKING:
+    from pssnet_core.inference import Completer
 
 CAUSES = ("no_grasp", *OUTCOMES[1:])  # every failure cause, in report order
 FRAME_SIZE = (240, 320)  # filmstrip frame height, width (pixels)
@@ -126,6 +129,13 @@ def config_of_run(directory: Path) -> TrialsConfig:
     if differing:
         raise ValueError(f"{directory}: settings {', '.join(differing)} are not the defaults this rebuild assumes")
     return config
+
+
+def strategist_of(config: TrialsConfig, pssnet: Completer, vae: Completer | None = None) -> Strategist:
+    """The :class:`Strategist` a run of ``config`` plans with (its grasps, samples, sampler, sampler options and
+    look threshold): the one `pssnet grasp-trials` makes, and the one scripts replaying a run must make."""
+    return Strategist(pssnet, vae, config.grasps, config.num_samples, config.physics, config.scenario.clutter_margin,
+                      config.sampler, config.sampler_options, config.look_threshold)
 
 
 @dataclass
