@@ -27,7 +27,13 @@ os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
 
 from pssnet_core.grasps import check_grasps  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
-from pssnet_core.trials.run import config_of_run, read_run_records, scene_seed, strategist_of  # noqa: E402
+from pssnet_core.trials.run import (  # noqa: E402
+    config_of_run,
+    pssnet_checkpoint_of,
+    read_run_records,
+    scene_seed,
+    strategist_of,
+)
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
 
 
@@ -39,8 +45,7 @@ def main() -> None:
                              "the one it names, or the shipped model where it names that)")
     args = parser.parse_args()
     config = config_of_run(args.run)
-    named = config.checkpoints.get("pssnet", "")
-    checkpoint = args.checkpoint or (None if named in ("", "shipped default") else named)
+    checkpoint = args.checkpoint or pssnet_checkpoint_of(config)
     missed = sorted((r.scenario, r.index) for r in read_run_records(args.run)
                     if r.strategy == "pssnet" and r.outcome == "missed")
     factory = SceneFactory(config.scenario, config.grasps.gripper)

@@ -102,9 +102,9 @@ def trials_config(args: argparse.Namespace) -> TrialsConfig:
     Raises:
         ValueError: a ``--grasp-option`` the planner's config refuses.
     """
-    from pssnet_core.trials.run import TrialsConfig
+    from pssnet_core.trials.run import SHIPPED_CHECKPOINT, TrialsConfig
 
-    checkpoints = {"pssnet": str(args.pssnet_checkpoint or "shipped default"), "vae": str(args.vae_checkpoint or "")}
+    checkpoints = {"pssnet": str(args.pssnet_checkpoint or SHIPPED_CHECKPOINT), "vae": str(args.vae_checkpoint or "")}
     config = TrialsConfig(scenarios=args.scenarios, strategies=chosen_strategies(args), trials=args.trials,
                           seed=args.seed, num_samples=args.num_samples, sampler=args.sampler,
                           sampler_options=tuple(args.sampler_option), look_threshold=args.look_threshold,

@@ -28,6 +28,7 @@ from pssnet_core.trials.strategies import Choice, Strategist
 if TYPE_CHECKING:
     from pssnet_core.inference import Completer
 
+SHIPPED_CHECKPOINT = "shipped default"  # how a run's settings name the shipped PSSNet (no --pssnet-checkpoint)
 CAUSES = ("no_grasp", *OUTCOMES[1:])  # every failure cause, in report order
 FRAME_SIZE = (240, 320)  # filmstrip frame height, width (pixels)
 
@@ -129,6 +130,13 @@ def config_of_run(directory: Path) -> TrialsConfig:
     if differing:
         raise ValueError(f"{directory}: settings {', '.join(differing)} are not the defaults this rebuild assumes")
     return config
+
+
+def pssnet_checkpoint_of(config: TrialsConfig) -> str | None:
+    """The PSSNet checkpoint a run's settings name, as :meth:`Completer.from_checkpoint` takes it (None: the
+    shipped model)."""
+    named = config.checkpoints.get("pssnet", "")
+    return None if named in ("", SHIPPED_CHECKPOINT) else named
 
 
 def strategist_of(config: TrialsConfig, pssnet: Completer, vae: Completer | None = None) -> Strategist:
