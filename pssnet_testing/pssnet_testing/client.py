@@ -144,9 +144,9 @@ class RosClient:
 
     def action(self, action_type: type, name: str, timeout: float = 30.0) -> Any:
         """An action client of ``name`` whose server has been discovered (waits up to ``timeout`` s)."""
-        from rclpy.action import ActionClient
+        from pssnet_testing.action_client import SerialisedActionClient
 
-        client = ActionClient(self.node, action_type, name)
+        client = SerialisedActionClient(self.node, action_type, name)
         if not client.wait_for_server(timeout_sec=timeout):
             client.destroy()
             raise TimeoutError(f"action server {name} not discovered within {timeout:g} s")
