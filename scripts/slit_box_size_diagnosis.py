@@ -3,7 +3,8 @@ scenes of a ``box_slit`` grasp-trials run, for one or more checkpoints.
 
 For each of the run's first scenes every checkpoint completes the trial's view with the run's settings and scene
 seeds (the samples the run's PSSNet strategy planned on); per scene the median over the samples of their voxel
-count / the truth's and of their extent along the grid's x axis (away from the camera) minus the truth's. Prints a
+count / the truth's and of their extent along the grid's x axis (away from the camera; the largest 26-connected
+part's, as ``pssnet ambiguity`` measures it) minus the truth's. Prints a
 line per checkpoint: the median and mean of those per-scene values. Used in ``results/slits_from_scratch/``::
 
     .venv/bin/python scripts/slit_box_size_diagnosis.py results/grasp_trials/dense_below/slit0 \
@@ -22,15 +23,10 @@ from pssnet_core.trials import HEADLESS_GL
 
 os.environ.setdefault("MUJOCO_GL", HEADLESS_GL)
 
+from pssnet_core.evaluation.ambiguity_sets import grid_x_extent  # noqa: E402
 from pssnet_core.inference import Completer  # noqa: E402
 from pssnet_core.trials.run import config_of_run, scene_seed, strategist_of  # noqa: E402
 from pssnet_core.trials.scenarios import SceneFactory  # noqa: E402
-
-
-def depth_extent(occupancy: np.ndarray) -> int:
-    """Voxels spanned along grid x (away from the camera) by the occupied voxels (0 when none)."""
-    xs = np.flatnonzero(occupancy.any(axis=(1, 2)))
-    return int(xs[-1] - xs[0] + 1) if len(xs) else 0
 
 
 def main() -> None:
@@ -50,7 +46,7 @@ def main() -> None:
             truth = scene.ground_truth(result.observation.pose)
             samples = np.asarray(result.occupancy, dtype=bool)
             size_ratios.append(float(np.median(samples.sum(axis=(1, 2, 3)))) / max(int(truth.sum()), 1))
-            depth_excess.append(float(np.median([depth_extent(s) for s in samples])) - depth_extent(truth))
+            depth_excess.append(float(np.nanmedian(grid_x_extent(samples))) - float(grid_x_extent(truth)[0]))
         print(f"{checkpoint}: {args.scenes} scenes; samples' voxels / the truth's: median "
               f"{np.median(size_ratios):.2f}, mean {np.mean(size_ratios):.2f}; depth extent - the truth's "
               f"(voxels): median {np.median(depth_excess):.1f}, mean {np.mean(depth_excess):.2f}", flush=True)
