@@ -259,6 +259,7 @@ def test_command_scores_spread_and_agreeing_samples(tiny_sets, hidden_view, tmp_
     assert summary[("agree", 1.0, 0.01)]["slit_views"] > 0 and summary[("agree", 1.0, 0.01)]["slit_precision"] == 1.0
     text = files["markdown"].read_text()
     assert "| spread | 2 |" in text and "delta = 4 cm" in text
+    assert "fall-back" not in text  # no checked sampler here
     for key in ("handle_figure", "slit_figure", "summary_figure"):
         assert files[key].stat().st_size > 0
     # The plausible sets are cached: a second run with other models computes none.
@@ -292,11 +293,25 @@ def test_cli_runs_a_real_checkpoint_at_each_box_temperature(tiny_sets, tmp_path,
     checkpoint = save_checkpoint(tmp_path / "pssnet.pt", tiny_model("pssnet", grid=32))
     out = tmp_path / "out"
     code = main(["ambiguity", "--models", "pssnet", "--checkpoints", str(checkpoint), "--data", str(tiny_sets),
-                 "--samples", "2", "--box-temperatures", "1,2", "--max-views", "1", "--out", str(out),
-                 "--no-progress"])
+                 "--samples", "2", "--box-temperatures", "1,2", "--max-views", "1", "--samplers", "posterior,checked",
+                 "--out", str(out), "--no-progress"])
     assert code == 0
-    summary = json.loads((out / "ambiguity.json").read_text())["summary"]
-    assert {(e["box_temperature"], e["delta_m"]) for e in summary} == {(1.0, 0.01), (1.0, 0.04), (2.0, 0.01),
-                                                                        (2.0, 0.04)}
+    result = json.loads((out / "ambiguity.json").read_text())
+    summary = result["summary"]
+    assert {(e["method"], e["box_temperature"], e["delta_m"]) for e in summary} == {
+        (m, t, d) for m in ("pssnet", "pssnet_checked") for t in (1.0, 2.0) for d in (0.01, 0.04)}
+    # The checked sampler's accepted proposals are kept per view, and the share of views it fell back on.
+    for entry in summary:
+        rows = [r for r in result["rows"] if r["method"] == entry["method"] and r["kind"] == "visible_handle"
+                and r["box_temperature"] == entry["box_temperature"]]
+        assert rows
+        if entry["method"] == "pssnet":
+            assert all(r["accepted"] is None for r in rows) and entry["nothing_accepted_visible"] is None  # NaN
+        else:
+            assert all(isinstance(r["accepted"], int) and r["accepted"] >= 0 for r in rows)
+            assert entry["nothing_accepted_visible"] == pytest.approx(np.mean([r["accepted"] == 0 for r in rows]))
+    text = (out / "ambiguity.md").read_text()
+    fallback = text[text.index("## The checked sampler's fall-back"):text.index("## Cost")]
+    assert "- pssnet_checked (box T 1): hidden" in fallback and "- pssnet (" not in fallback
     assert main(["ambiguity", "--models", "pssnet", "--checkpoints", str(checkpoint), "--data", str(tmp_path),
                  "--out", str(out), "--no-progress"]) == 2  # no test sets there: an error message, not a crash

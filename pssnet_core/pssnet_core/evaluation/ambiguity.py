@@ -51,7 +51,7 @@ from pssnet_core.evaluation.ambiguity_sets import (
     SlitRange,
     grid_x_extent,
 )
-from pssnet_core.evaluation.experiment import Completer, nanmean, sample_occupancy
+from pssnet_core.evaluation.experiment import Completer, complete_view, nanmean
 from pssnet_core.evaluation.handles import (
     HandleGeometry,
     circular_difference_deg,
@@ -61,6 +61,7 @@ from pssnet_core.evaluation.handles import (
 )
 from pssnet_core.evaluation.plausible import EvalView
 from pssnet_core.evaluation.testsets import MUG_SETS, NARROW_SETS, build_command, find_test_set
+from pssnet_core.sampling import CheckedResult
 from pssnet_core.spread import evenly_spaced
 
 
@@ -297,11 +298,15 @@ def run_ambiguity(config: AmbiguityConfig, completers: Mapping[str, Completer]) 
         for name, temperature in runs:
             t0 = time.perf_counter()
             # Models with a box part get the temperature explicitly (a completer may carry another default).
-            samples = sample_occupancy(completers[name], view, config.samples, config.seed + view.index,
-                                       box_temperature=temperature)
+            result = complete_view(completers[name], view, config.samples, config.seed + view.index,
+                                   box_temperature=temperature)
+            samples = np.asarray(result.occupancy, dtype=bool)
             t_sampling += time.perf_counter() - t0
+            # The checked sampler's accepted proposals: none means the least-violating ones came back.
+            accepted = result.accepted if isinstance(result, CheckedResult) else None
             base = {"method": name, "box_temperature": float(temperature), "kind": kind, "index": view.index,
-                    "identity": view.identity, "rotation_deg": view.meta.get("rotation_deg")}
+                    "identity": view.identity, "rotation_deg": view.meta.get("rotation_deg"), "accepted": accepted,
+                    "nothing_accepted": math.nan if accepted is None else float(accepted == 0)}
             if kind == "slit":
                 rows += _slit_rows(base, ranges[view.index], grid_x_extent(samples), measure)
                 continue
@@ -372,6 +377,9 @@ SUMMARY_KEYS: tuple[tuple[str, str, str], ...] = (
     ("slit_sample_min_mm", "slit", "sample_min_mm"),
     ("slit_sample_max_mm", "slit", "sample_max_mm"),
     ("slit_open_ended", "slit", "open_ended"),
+    ("nothing_accepted_hidden", "hidden_handle", "nothing_accepted"),
+    ("nothing_accepted_visible", "visible_handle", "nothing_accepted"),
+    ("nothing_accepted_slit", "slit", "nothing_accepted"),
 )
 
 

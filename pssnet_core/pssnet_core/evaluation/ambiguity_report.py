@@ -76,6 +76,17 @@ def markdown_ambiguity(summary: Sequence[dict[str, Any]], result: AmbiguityResul
             lines.append(f"Extents are means over views of each view's min/max; the true box passes in {truth:.0%} "
                          "of the slit views.")
         lines.append("")
+    fallbacks = [e for e in summary if abs(e["delta_m"] - c.deltas[0]) < 1e-12 and any(
+        np.isfinite(e[f"nothing_accepted_{kind}"]) for kind in ("hidden", "visible", "slit"))]
+    if fallbacks:
+        lines += ["## The checked sampler's fall-back", "",
+                  "Share of the views on which its check accepted none of the proposals, so that the least-violating "
+                  "ones came back (the same at every delta):", ""]
+        for e in fallbacks:
+            shares = ", ".join(f"{kind} {_f(100 * e[f'nothing_accepted_{kind}'], 0)} %"
+                               for kind in ("hidden", "visible", "slit") if np.isfinite(e[f"nothing_accepted_{kind}"]))
+            lines.append(f"- {e['method']} (box T {e['box_temperature']:g}): {shares}")
+        lines.append("")
     lines += ["## Cost", ""]
     for kind in ("handle_arcs", "slit_ranges"):
         if kind in costs:

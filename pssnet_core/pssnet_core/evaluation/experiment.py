@@ -48,14 +48,18 @@ class Completer(Protocol):
         """``num_samples`` completions of ``observation`` (an evaluation view, with ``network_input()``)."""
 
 
+def complete_view(completer: Completer, view: Any, num_samples: int, seed: int,
+                  box_temperature: float | None = None) -> Completions:
+    """The completer's result for ``view``; ``box_temperature`` reaches only completers with a box part."""
+    if box_temperature is not None and completer.has_box_latent:
+        return completer.complete(view, num_samples=num_samples, seed=seed, box_temperature=box_temperature)
+    return completer.complete(view, num_samples=num_samples, seed=seed)
+
+
 def sample_occupancy(completer: Completer, view: Any, num_samples: int, seed: int,
                      box_temperature: float | None = None) -> np.ndarray:
-    """(n, N, N, N) bool completions of ``view``; ``box_temperature`` reaches only completers with a box part."""
-    if box_temperature is not None and completer.has_box_latent:
-        result = completer.complete(view, num_samples=num_samples, seed=seed, box_temperature=box_temperature)
-    else:
-        result = completer.complete(view, num_samples=num_samples, seed=seed)
-    return np.asarray(result.occupancy, dtype=bool)
+    """(n, N, N, N) bool completions of ``view`` (:func:`complete_view`'s occupancy)."""
+    return np.asarray(complete_view(completer, view, num_samples, seed, box_temperature).occupancy, dtype=bool)
 
 
 def write_csv(path: str | Path, rows: Sequence[Mapping[str, Any]]) -> Path:
@@ -165,4 +169,4 @@ def write_report(report: Report, out: str | Path) -> dict[str, Path]:
 
 
 __all__ = ["Completer", "Completions", "Figure", "Json", "Markdown", "Report", "Table", "nanmean", "plain",
-           "sample_occupancy", "write_csv", "write_report"]
+           "complete_view", "sample_occupancy", "write_csv", "write_report"]
