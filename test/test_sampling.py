@@ -18,6 +18,7 @@ from pssnet_core.sampling import (
     CheckedSampler,
     CheckedSamplerConfig,
     GridCheck,
+    spread_selection,
 )
 from pssnet_core.spread import BitRows, farthest_point_selection, row_bit_counts, row_bit_counts_portable
 
@@ -138,6 +139,22 @@ def tiny_completer(name: str = "pssnet") -> Completer:
     return Completer(model, model.config)
 
 
+def test_spread_selection_repeats_few_accepted_or_fills_with_the_nearest_misses():
+    rng = np.random.default_rng(1)
+    grids = rng.random((8, 4096)) < 0.3  # eight different proposals
+    packed = BitRows.pack(grids)
+    ok = np.zeros(8, dtype=bool)
+    ok[[5, 6]] = True  # two accepted
+    badness = np.array([4.0, 1.0, 9.0, 2.0, 7.0, 0.0, 0.0, 3.0])
+    chosen, weights = spread_selection(packed, ok, badness, 4)
+    assert sorted(chosen.tolist()) == [5, 6] and weights.sum() == pytest.approx(1.0)  # the sampler repeats them
+    chosen, weights = spread_selection(packed, ok, badness, 4, fill=True)
+    assert sorted(chosen.tolist()) == [1, 3, 5, 6]  # the accepted and the two least-violating rejected
+    assert weights.sum() == pytest.approx(1.0)
+    assert sorted(spread_selection(packed, np.zeros(8, bool), badness, 3)[0].tolist()) == [1, 5, 6]
+    assert sorted(spread_selection(packed, ok, badness, 2, fill=True)[0].tolist()) == [5, 6]  # enough accepted
+
+
 def test_checked_sampler_on_a_tiny_model_returns_weighted_seeded_samples():
     sampler = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=8, max_missed_fraction=0.9,
                                                                     max_free_voxels=10_000))
@@ -157,10 +174,17 @@ def test_checked_sampler_says_when_no_proposal_agrees_with_the_view():
     observation = SlabObservation()
     observation.known_free = ~observation.known_occupied  # everything else seen through: any body violates
     sampler = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
-                                                                    max_missed_fraction=0.0))
+                                                                    max_missed_fraction=0.0,
+                                                                    fill_with_nearest_misses=False))
     result = sampler.complete(observation, num_samples=3, seed=0)
     assert result.accepted == 0 and "no proposal of 12 agrees with the view" in result.note
     assert result.occupancy.shape[0] == 3 and result.weights.sum() == pytest.approx(1.0)
+    filling = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
+                                                                    max_missed_fraction=0.0,
+                                                                    fill_with_nearest_misses=True))
+    same = filling.complete(observation, num_samples=3, seed=0)  # nothing accepted: the same fall-back
+    np.testing.assert_array_equal(same.probabilities, result.probabilities)
+    assert same.note == result.note
 
 
 def test_checked_sampler_refuses_models_without_a_latent_and_bare_inputs():
