@@ -18,7 +18,9 @@ node's :class:`~pssnet_core.sampling.CheckedSamplerConfig`), and ``num_samples``
 and weighted the way the checked sampler chooses its samples (farthest point on Jaccard distance, weight = the
 share of accepted proposals each stands for; when none is accepted, the least-violating ones, as the sampler
 does). So this strategy is the node's default sampler with perfect proposals: the difference between it and
-``pssnet`` is what the network's proposals cost.
+``pssnet`` is what the network's proposals cost. One difference since stop 58: when fewer variants than
+``num_samples`` are accepted it returns only those, where the node's sampler makes the number up with its nearest misses
+(``CheckedSamplerConfig.fill_with_nearest_misses``); the committed reference runs were made before that default.
 
 The ``scene_posterior`` strategy proposes only what the scenario itself could have drawn (:func:`posterior_shapes`):
 a mug's turns within the scenario's yaw range, the exact posterior of the hidden handle given the view (no sampler
@@ -266,7 +268,7 @@ def pool_variants(judge: VariantJudge, pool: tuple[ObjectScene, ...], yaw_deg: f
 
 def spread_choice(variants: Variants, num_samples: int) -> PlausibleShapes:
     """``num_samples`` of the variants, chosen and weighted as the checked sampler chooses
-    (:func:`pssnet_core.sampling.spread_selection`)."""
+    (:func:`pssnet_core.sampling.spread_selection`, without its fill: see the module's docstring)."""
     chosen, weights = spread_selection(variants.packed, variants.ok, variants.badness, num_samples)
     return PlausibleShapes(variants.grids[chosen], weights.astype(np.float32), variants.judged, int(variants.ok.sum()))
 
