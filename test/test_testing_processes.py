@@ -11,7 +11,10 @@ from pathlib import Path
 import pytest
 from test_node_helpers import domain_for
 
-from pssnet_ros.spinning import spin_until_shutdown
+import rclpy
+from rclpy.context import Context
+
+from pssnet_ros.spinning import shutdown_once, spin_until_shutdown
 from pssnet_testing.processes import (
     DOMAIN_GAIN,
     LOCK_SUFFIX,
@@ -114,3 +117,39 @@ def test_spin_until_shutdown_absorbs_only_the_shutdown_race():
     spin_until_shutdown(RacingExecutor(context_ok=False))  # shut down: a clean exit
     with pytest.raises(RuntimeError, match="wait set"):
         spin_until_shutdown(RacingExecutor(context_ok=True))  # still running: a real error
+
+
+class ShutDownMeanwhile(Context):
+    """A context that rclpy's signal-handler thread shuts down between ``try_shutdown``'s validity check and its
+    own shutdown (ros2/rclpy#1352): the race's end state, made deterministic; rcl's own error follows."""
+
+    def try_shutdown(self) -> None:
+        self.shutdown()  # the signal handler's thread
+        super().shutdown()  # try_shutdown's own call, after its check passed: "rcl_shutdown already called"
+
+
+class FailsWhileValid(Context):
+    def try_shutdown(self) -> None:
+        raise RuntimeError("failed to shutdown: something else")
+
+
+def test_shutdown_once_absorbs_only_a_shutdown_by_another_thread():
+    domain = domain_for(25)
+    raced = ShutDownMeanwhile()
+    rclpy.init(context=raced, domain_id=domain)
+    with pytest.raises(RuntimeError, match="already called"):
+        raced.try_shutdown()  # what the node's exit hit in CI
+    assert not raced.ok()
+
+    raced = ShutDownMeanwhile()
+    rclpy.init(context=raced, domain_id=domain)
+    shutdown_once(raced)  # a clean exit
+    assert not raced.ok()
+
+    failing = FailsWhileValid()
+    rclpy.init(context=failing, domain_id=domain)
+    try:
+        with pytest.raises(RuntimeError, match="something else"):
+            shutdown_once(failing)  # still valid: a real error
+    finally:
+        failing.shutdown()

@@ -96,7 +96,7 @@ from pssnet_ros.params import (
 )
 from pssnet_ros.rclpy_fixes import refuse_unknown_transitions
 from pssnet_ros.shm import clean_stale_shm
-from pssnet_ros.spinning import spin_until_shutdown
+from pssnet_ros.spinning import shutdown_once, spin_until_shutdown
 from pssnet_ros.sync import StampSynchronizer, SyncedSet
 
 NODE_NAME = "pssnet"
@@ -771,7 +771,7 @@ def main(args: Sequence[str] | None = None) -> int:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_once()
     return code
 
 

@@ -563,7 +563,7 @@ def _subscriber_main(args: argparse.Namespace, domain: int) -> int:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    from pssnet_ros.spinning import spin_until_shutdown
+    from pssnet_ros.spinning import shutdown_once, spin_until_shutdown
 
     received = 0
 
@@ -591,7 +591,7 @@ def _subscriber_main(args: argparse.Namespace, domain: int) -> int:
         pass
     finally:
         node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_once()
     print(f"handled {received} messages", flush=True)
     return 0
 

@@ -402,7 +402,7 @@ def spinning_node_script(node_name: str, setup: str, ready: str) -> str:
     return f"""
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
-from pssnet_ros.spinning import spin_until_shutdown
+from pssnet_ros.spinning import shutdown_once, spin_until_shutdown
 rclpy.init()
 node = rclpy.create_node({node_name!r})
 {setup}
@@ -414,7 +414,7 @@ try:
 except KeyboardInterrupt:
     pass
 node.destroy_node()
-rclpy.try_shutdown()
+shutdown_once()
 """
 
 

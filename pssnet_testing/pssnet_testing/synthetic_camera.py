@@ -26,7 +26,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from pssnet_ros.conversions import intrinsics_to_camera_info, numpy_to_image
-from pssnet_ros.spinning import spin_until_shutdown
+from pssnet_ros.spinning import shutdown_once, spin_until_shutdown
 
 if TYPE_CHECKING:  # the scenes (and their shapes: manifold3d) load only where a scene is rendered
     from pssnet_core.data.scenes import RenderedView
@@ -131,7 +131,7 @@ def main(args: Sequence[str] | None = None) -> int:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_once()
     return 0
 
 
