@@ -9,10 +9,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_node_helpers import domain_for
-
 import rclpy
 from rclpy.context import Context
+from test_node_helpers import domain_for
 
 from pssnet_ros.spinning import shutdown_once, spin_until_shutdown
 from pssnet_testing.processes import (
