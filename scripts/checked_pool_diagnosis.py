@@ -64,8 +64,9 @@ def main() -> None:
     for view in hidden:
         counts = config.proposal_counts(args.samples, sampler.has_box_latent, sampler.has_flow)
         generator = torch.Generator().manual_seed(view.index)
-        occupancy = sampler.propose(completer.network_input(view), counts, generator,
-                                    completer.box_temperature).numpy() > 0.5
+        _, probabilities = sampler.propose(completer.network_input(view), counts, generator,
+                                           completer.box_temperature)
+        occupancy = probabilities.numpy() > 0.5
         packed = BitRows.pack(occupancy)
         check = GridCheck.prepare(view.known_occupied, view.known_free, view.grid_pose, config.delta)
         missed, free = check.violations(occupancy, packed)

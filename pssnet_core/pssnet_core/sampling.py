@@ -22,7 +22,14 @@ behind a slit all narrower than the truth). The view itself says what is allowed
    delta) on more than ``max_missed_fraction`` of the observed voxels (silhouette voxels are where a sub-voxel
    shift decides, the grid's analogue of Alg. 1's unreliable pixels), or when it occupies more than
    ``max_free_voxels`` voxels lying more than ``delta`` in front of what the camera saw (it saw through them).
-3. **Select** the requested number among the accepted proposals by farthest-point selection on the Jaccard
+3. **Refine** (``refine_steps`` > 0) the ``refine_misses`` least-violating rejected proposals: a few gradient
+   steps on the rest of each one's latent (its box code, which places the handle and the hidden extent, held
+   fixed) towards occupying the observed voxels and leaving seen-through space empty, then check them again.
+   Why: a proposal that reaches a hidden handle the posterior does not draw (a turned box) mostly fails on its
+   body, moved a voxel or two off what the camera saw; the view can put the body back without taking the handle
+   away. Gradient steps on the latent are the model's own way to explain the view (as an auto-decoder infers a
+   code); nothing else here knows what the decoder can draw.
+4. **Select** the requested number among the accepted proposals by farthest-point selection on the Jaccard
    distance of their occupancy (1 - IoU), starting from the first accepted posterior proposal; each selected
    sample's **weight** is the share of accepted proposals nearest to it (sums to 1), which the grasp score uses.
 
@@ -54,6 +61,8 @@ SAMPLERS: tuple[str, ...] = ("posterior", "checked")
 
 # Proposal sources, in the order their latents are drawn and decoded.
 SOURCES: tuple[str, ...] = ("posterior", "widened", "prior_box", "turned_box")
+# The refined nearest misses, counted beside the sources in a result's ``accepted_by_source``.
+REFINED = "refined"
 
 
 @dataclass(frozen=True)
@@ -77,6 +86,11 @@ class CheckedSamplerConfig:
             the least-violating rejected ones (as when none passes) instead of repeating the accepted ones: no jump
             from twenty nearest misses when nothing passes to twenty copies of one when one does (mugs behind a
             slit: arc coverage 0.47 -> 0.58, nothing worse measured; results/shipped_with_flow/README.md).
+        refine_misses: least-violating rejected proposals refined per call.
+        refine_steps: Adam steps of the refinement (0: no refinement).
+        refine_rate: Adam's learning rate on the latent (prior units).
+        refine_anchor: weight of the squared distance from the proposal's own latent (keeps the refined proposal
+            what it was where the view says nothing).
     """
 
     proposals_per_sample: int = 10
@@ -89,6 +103,10 @@ class CheckedSamplerConfig:
     max_free_voxels: int = 2
     max_proposals: int = 2000
     fill_with_nearest_misses: bool = True
+    refine_misses: int = 20
+    refine_steps: int = 0
+    refine_rate: float = 0.1
+    refine_anchor: float = 0.01
 
     def __post_init__(self) -> None:
         if not 1 <= self.proposals_per_sample <= 100:
@@ -106,6 +124,13 @@ class CheckedSamplerConfig:
         if not (0.0 <= self.max_missed_fraction < 1.0 and 0.0 <= self.missed_margin < 1.0):
             raise ValueError(f"max_missed_fraction and missed_margin must lie in [0, 1), got "
                              f"{self.max_missed_fraction}, {self.missed_margin}")
+        if not (0 <= self.refine_misses <= self.max_proposals and 0 <= self.refine_steps <= 100):
+            raise ValueError(f"refine_misses must lie in [0, max_proposals] and refine_steps in [0, 100], got "
+                             f"{self.refine_misses}, {self.refine_steps}")
+        if not (math.isfinite(self.refine_rate) and 0 < self.refine_rate <= 10
+                and math.isfinite(self.refine_anchor) and self.refine_anchor >= 0):
+            raise ValueError(f"refine_rate must lie in (0, 10] and refine_anchor be >= 0, got {self.refine_rate}, "
+                             f"{self.refine_anchor}")
         if self.max_free_voxels < 0 or self.max_proposals < 1:
             raise ValueError(f"max_free_voxels must be >= 0 and max_proposals >= 1, got {self.max_free_voxels}, "
                              f"{self.max_proposals}")
@@ -250,11 +275,12 @@ class CheckedResult(CompletionResult):
 
     Attributes:
         weights: (n,) share of the accepted proposals each sample stands for (sums to 1).
-        proposals: proposals decoded.
+        proposals: proposals decoded (refined nearest misses included).
         accepted: proposals the check accepted.
-        accepted_by_source: accepted proposals per source (``SOURCES``).
+        accepted_by_source: accepted proposals per source (``SOURCES``, then ``REFINED``: refined nearest misses).
         note: "" when at least ``n`` distinct proposals were accepted, else what happened.
         check_s: seconds spent checking and selecting (inside ``elapsed_s``).
+        refine_s: seconds spent refining nearest misses (inside ``elapsed_s``).
     """
 
     weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -263,6 +289,7 @@ class CheckedResult(CompletionResult):
     accepted_by_source: dict[str, int] = field(default_factory=dict)
     note: str = ""
     check_s: float = 0.0
+    refine_s: float = 0.0
 
 
 class CheckedSampler:
@@ -322,8 +349,9 @@ class CheckedSampler:
         return self.completer.info
 
     def propose(self, x: torch.Tensor, counts: dict[str, int], generator: torch.Generator,
-                box_temperature: float) -> torch.Tensor:
-        """(P, N^3) float32 occupancy probabilities of the proposals of each source, in ``SOURCES`` order."""
+                box_temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """The proposals of each source, in ``SOURCES`` order: (P, latent_dim) latents and (P, N^3) float32
+        occupancy probabilities."""
         model = self.completer.model
         box = model.box_dim
         with torch.inference_mode(), self.completer.ctx.autocast():
@@ -340,7 +368,37 @@ class CheckedSampler:
                 latents.append(z)
             if counts["turned_box"]:
                 latents.append(self._turned_latents(mu, logvar, counts["turned_box"], generator, box_temperature))
-            probs = model.decode_probabilities(torch.cat(latents))
+            z = torch.cat(latents)
+            probs = model.decode_probabilities(z)
+        return z, probs.reshape(probs.shape[0], -1).float()
+
+    def refine(self, latents: torch.Tensor, known_occupied: np.ndarray, check: GridCheck) -> torch.Tensor:
+        """(R, N^3) float32 occupancy probabilities of ``latents`` after ``refine_steps`` Adam steps on the rest of
+        each latent (the box code, where the model has one, held fixed) minimising, per proposal, the mean
+        -log p over the observed voxels plus the sum of -log(1 - p) over the deep-free ones (on the observed
+        voxels' scale), plus ``refine_anchor`` times the squared distance from where it started."""
+        model = self.completer.model
+        config = self.sampler_config
+        box = model.box_dim if self.has_box_latent else 0
+        start = latents.detach().clone().float()  # out of inference mode: autograd may use it
+        rest = start[:, box:].clone().requires_grad_(True)
+        device = latents.device
+        observed = torch.as_tensor(np.flatnonzero(known_occupied.reshape(-1)), device=device)
+        deep_free = torch.as_tensor(np.flatnonzero(check.deep_free), device=device)
+        optimizer = torch.optim.Adam([rest], lr=config.refine_rate)
+        with torch.enable_grad():
+            for _ in range(config.refine_steps):
+                with self.completer.ctx.autocast():
+                    logits = model.decode(torch.cat([start[:, :box], rest], 1)).reshape(len(rest), -1).float()
+                unexplained = torch.nn.functional.softplus(-logits[:, observed]).mean(1)
+                seen_through = torch.nn.functional.softplus(logits[:, deep_free]).sum(1) / max(len(observed), 1)
+                anchor = config.refine_anchor * (rest - start[:, box:]).square().sum()
+                loss = (unexplained + seen_through).sum() + anchor
+                # Only the latent's gradient: the decoder's weights stay out of the backward pass.
+                (rest.grad,) = torch.autograd.grad(loss, [rest])
+                optimizer.step()
+        with torch.inference_mode(), self.completer.ctx.autocast():
+            probs = model.decode_probabilities(torch.cat([start[:, :box], rest.detach()], 1))
         return probs.reshape(probs.shape[0], -1).float()
 
     def _turned_latents(self, mu: torch.Tensor, logvar: torch.Tensor, count: int, generator: torch.Generator,
@@ -375,17 +433,34 @@ class CheckedSampler:
         counts = self.sampler_config.proposal_counts(int(num_samples), self.has_box_latent, self.has_flow)
         generator = torch.Generator().manual_seed(int(seed))
         t0 = time.perf_counter()
-        probs = self.propose(x, counts, generator, float(temperature))
+        latents, probs = self.propose(x, counts, generator, float(temperature))
         # Only the occupancy leaves the model's device for the check (a quarter of the bytes of the probabilities
         # on a GPU); the chosen samples' probabilities follow at the end.
         occupancy = (probs > 0.5).cpu().numpy()
         t1 = time.perf_counter()
-        check = GridCheck.prepare(known_occupied, known_free, pose, self.sampler_config.delta,
-                                  getattr(observation, "views", ()))
+        config = self.sampler_config
+        check = GridCheck.prepare(known_occupied, known_free, pose, config.delta, getattr(observation, "views", ()))
         packed = BitRows.pack(occupancy)
         missed, free = check.violations(occupancy, packed)
         source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
-        ok = self.sampler_config.accepts(missed, free, source == 0)
+        ok = config.accepts(missed, free, source == 0)
+        refine_s = 0.0
+        misses = np.argsort(np.where(ok, np.inf, check.badness(missed, free)), kind="stable")[:config.refine_misses]
+        misses = misses[~ok[misses]]
+        if config.refine_steps and len(misses):
+            t_refine = time.perf_counter()
+            refined = self.refine(latents[torch.as_tensor(misses, device=latents.device)], known_occupied, check)
+            refined_occupancy = (refined > 0.5).cpu().numpy()
+            refined_missed, refined_free = check.violations(refined_occupancy, BitRows.pack(refined_occupancy))
+            # The same limits as the proposals' (the posterior's median miss set on those).
+            limit_source = np.concatenate([source == 0, np.zeros(len(misses), bool)])
+            missed, free = np.concatenate([missed, refined_missed]), np.concatenate([free, refined_free])
+            ok = config.accepts(missed, free, limit_source)
+            probs = torch.cat([probs, refined])
+            occupancy = np.concatenate([occupancy, refined_occupancy])
+            packed = BitRows.pack(occupancy)
+            source = np.concatenate([source, np.full(len(misses), len(SOURCES))])
+            refine_s = time.perf_counter() - t_refine
         accepted = np.flatnonzero(ok)
         note = ""
         if len(accepted) == 0:
@@ -413,5 +488,6 @@ class CheckedSampler:
         return CheckedResult(probabilities=chosen_probs, occupancy=chosen_probs > 0.5, grid_size=n, seed=int(seed),
                              model=self.completer.model_name, elapsed_s=t2 - t0, weights=weights.astype(np.float32),
                              proposals=len(ok), accepted=len(accepted),
-                             accepted_by_source={s: int(np.sum(ok & (source == i))) for i, s in enumerate(SOURCES)},
-                             note=note, check_s=t2 - t1)
+                             accepted_by_source={s: int(np.sum(ok & (source == i)))
+                                                 for i, s in enumerate((*SOURCES, REFINED))},
+                             note=note, check_s=t2 - t1 - refine_s, refine_s=refine_s)
