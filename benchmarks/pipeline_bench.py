@@ -85,6 +85,8 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=20)
     parser.add_argument("--up-check-deg", type=float, default=PipelineConfig().up_check_deg,
                         help="the support-plane check of the up vector (open3d's RANSAC, on the CPU); 0 = off")
+    parser.add_argument("--sampler-option", action="append", default=[], metavar="NAME=VALUE",
+                        help="a checked sampler parameter for the checked rows (CheckedSamplerConfig; repeatable)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     if args.write_views:
@@ -95,9 +97,11 @@ def main() -> int:
     views = read_views(args.views)
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
     print(f"[pipeline] CPU: {cpu_kind()}; GPU: {gpu}; torch {torch.__version__}, {args.threads} CPU threads; "
-          f"{args.samples} samples, grasps on, up check {args.up_check_deg:g} deg, views: {', '.join(views)}")
+          f"{args.samples} samples, grasps on, up check {args.up_check_deg:g} deg, views: {', '.join(views)}; "
+          f"checked sampler options: {' '.join(args.sampler_option) or 'none'}")
     results: dict[str, dict[str, float]] = {}
-    config = PipelineConfig(num_samples=args.samples, up_check_deg=args.up_check_deg)
+    config = PipelineConfig(num_samples=args.samples, up_check_deg=args.up_check_deg,
+                            sampler_options=tuple(args.sampler_option))
     for device in args.devices:
         pipeline = CompletionPipeline.from_checkpoint(None, config, device=device, threads=args.threads,
                                                       precision=args.precision)

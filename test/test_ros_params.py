@@ -130,7 +130,7 @@ def test_rclpy_enforces_descriptor_ranges_and_types(param_node):
 
 def test_every_pipeline_parameter_names_a_config_field_with_its_default():
     fields = [spec.field for spec in PARAMETERS if spec.field]
-    assert len(fields) == len(set(fields)) == 48
+    assert len(fields) == len(set(fields)) == 49
     for spec in PARAMETERS:
         if spec.field:
             assert spec.default == config_default(spec.field), spec.name
@@ -145,7 +145,8 @@ def test_every_pipeline_parameter_names_a_config_field_with_its_default():
                "grasp_palm_depth": 0.03, "grasp_min_object_width": 0.004, "grasp_clearance": 0.004,
                "grasp_max_candidates": 300, "grasp_top_yaws": 4, "grasp_side_yaws": 6, "grasp_top_k": 3,
                "grasp_min_score": 0.25, "sampler": "posterior", "check_delta": 0.02, "proposals_per_sample": 5,
-               "up_check_deg": 10.0, "grasp_side_rolls": [0.0, 45.0, 90.0], "grasp_tilted_pitches": [30.0, 60.0],
+               "refine_steps": 2, "up_check_deg": 10.0, "grasp_side_rolls": [0.0, 45.0, 90.0],
+               "grasp_tilted_pitches": [30.0, 60.0],
                "grasp_shallow_depths": [], "grasp_thin_anchor_bias": 2.0, "grasp_rank_by": "fraction",
                "grasp_grip_force": 40.0, "grasp_holds_axial_load": True, "grasp_friction": 0.8,
                "grasp_object_density": 400.0, "grasp_observed_points_check": False,

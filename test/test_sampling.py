@@ -161,7 +161,7 @@ def test_spread_selection_repeats_few_accepted_or_fills_with_the_nearest_misses(
 
 def test_checked_sampler_on_a_tiny_model_returns_weighted_seeded_samples():
     sampler = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=8, max_missed_fraction=0.9,
-                                                                    max_free_voxels=10_000))
+                                                                    max_free_voxels=10_000, refine_steps=0))
     observation = SlabObservation()
     result = sampler.complete(observation, num_samples=6, seed=3)
     assert isinstance(result, CheckedResult)
@@ -179,13 +179,16 @@ def test_checked_sampler_says_when_no_proposal_agrees_with_the_view():
     observation.known_free = ~observation.known_occupied  # everything else seen through: any body violates
     sampler = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
                                                                     max_missed_fraction=0.0,
-                                                                    fill_with_nearest_misses=False))
+                                                                    fill_with_nearest_misses=False, refine_steps=0))
     result = sampler.complete(observation, num_samples=3, seed=0)
     assert result.accepted == 0 and "no proposal of 12 agrees with the view" in result.note
+    refining = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
+                                                                     max_missed_fraction=0.0, refine_misses=5))
+    assert "no proposal of 17 (5 of them refined) agrees" in refining.complete(observation, 3, seed=0).note
     assert result.occupancy.shape[0] == 3 and result.weights.sum() == pytest.approx(1.0)
     filling = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
                                                                     max_missed_fraction=0.0,
-                                                                    fill_with_nearest_misses=True))
+                                                                    fill_with_nearest_misses=True, refine_steps=0))
     same = filling.complete(observation, num_samples=3, seed=0)  # nothing accepted: the same fall-back
     np.testing.assert_array_equal(same.probabilities, result.probabilities)
     assert same.note == result.note
@@ -293,7 +296,7 @@ def test_turned_box_codes_turn_the_box_about_the_vertical_axis():
 def test_checked_sampler_turns_boxes_only_with_the_flow():
     observation = SlabObservation()
     config = CheckedSamplerConfig(proposals_per_sample=10, source_shares=(0.5, 0.0, 0.0, 0.5),
-                                  max_missed_fraction=0.9, max_free_voxels=10_000)
+                                  max_missed_fraction=0.9, max_free_voxels=10_000, refine_steps=0)
     old_export = tiny_completer()
     old_export.info["missing_modules"] = ["flow."]  # as the load of an export written without the flow says
     for completer, drawn in ((tiny_completer(), "turned_box"), (old_export, "prior_box")):

@@ -95,11 +95,17 @@ def factory(cache) -> SceneFactory:
     return SceneFactory(ScenarioConfig(mugs=1, boxes=3, cache_dir=cache))
 
 
+# The checked sampler without its refinement: these tests pin the strategies' choices to scenes whose four samples
+# differ as these settings draw them (box_slit scene 0: from some place a second look tells two apart); the
+# refinement's own effect is measured in results/refine/, not here.
+UNREFINED = ("refine_steps=0",)
+
+
 @pytest.fixture(scope="module")
 def strategist() -> Strategist:
     config = TrialsConfig()
     return Strategist(Completer.from_checkpoint(None, threads=1), None, config.grasps, 4, config.physics,
-                      config.scenario.clutter_margin)
+                      config.scenario.clutter_margin, sampler_options=UNREFINED)
 
 
 def _top_grasp(scene: PhysicsScene, depth: float = 0.02, dx: float = 0.0) -> np.ndarray:
@@ -543,7 +549,7 @@ def test_a_second_look_comes_from_where_the_samples_disagree_and_sees_the_box(fa
     # A robot that looks whenever some place tells two samples apart at all does look there.
     config = TrialsConfig()
     eager = Strategist(strategist.pssnet, None, config.grasps, 4, config.physics, config.scenario.clutter_margin,
-                       look_threshold=0.0)
+                       sampler_options=UNREFINED, look_threshold=0.0)
     looked = eager.choose(unsure, ("pssnet_second_look",), seed=0)["pssnet_second_look"]
     assert looked.notes["look_separability"] == kept["pssnet_second_look"].notes["look_separability"]
     assert "look_azimuth_deg" in looked.notes and "weight_share" in looked.notes
@@ -556,7 +562,8 @@ def test_the_vae_looks_again_under_the_same_policy_from_its_own_samples(factory,
     # own samples deciding where to look and completing both views.
     config = TrialsConfig()
     model = strategist.pssnet
-    as_vae = Strategist(model, model, config.grasps, 4, config.physics, config.scenario.clutter_margin)
+    as_vae = Strategist(model, model, config.grasps, 4, config.physics, config.scenario.clutter_margin,
+                        sampler_options=UNREFINED)
     scene = factory.scene("box_slit", 0)
     choices = as_vae.choose(scene, ("pssnet", "pssnet_second_look", "vae", "vae_second_look"), seed=0)
     looked, vae_looked = choices["pssnet_second_look"], choices["vae_second_look"]

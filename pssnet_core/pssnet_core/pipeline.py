@@ -131,6 +131,8 @@ class PipelineConfig:
             3D-RecGAN++, is sampled as it is).
         check_delta: the checked sampler's depth tolerance (metres).
         proposals_per_sample: the checked sampler's proposals per requested sample.
+        refine_steps: the checked sampler's gradient steps on its nearest misses' latents (0: none; each step
+            costs about three decodes of ``refine_misses`` (20) latents).
         sampler_options: ``NAME=VALUE`` settings of the checked sampler's other parameters
             (:class:`pssnet_core.sampling.CheckedSamplerConfig`), applied last; for experiments from the command
             line (``--sampler-option``), the node sets none.
@@ -160,6 +162,7 @@ class PipelineConfig:
     sampler: str = "checked"
     check_delta: float = 0.01
     proposals_per_sample: int = 10
+    refine_steps: int = 3
     sampler_options: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -192,7 +195,7 @@ class PipelineConfig:
 
         if self.sampler not in SAMPLERS:
             raise ValueError(f"sampler must be one of {', '.join(SAMPLERS)}, got {self.sampler!r}")
-        self.checked_sampler_config()  # validates check_delta, proposals_per_sample and sampler_options
+        self.checked_sampler_config()  # validates check_delta, proposals_per_sample, refine_steps, sampler_options
         if self.grasp_top_k < 1 or not 0.0 <= self.grasp_min_score <= 1.0:
             raise ValueError(f"grasp_top_k must be >= 1 and grasp_min_score in [0, 1], got {self.grasp_top_k} and "
                              f"{self.grasp_min_score}")
@@ -202,7 +205,7 @@ class PipelineConfig:
         from pssnet_core.sampling import CheckedSamplerConfig, checked_config_with
 
         return checked_config_with(self.sampler_options, CheckedSamplerConfig(
-            delta=self.check_delta, proposals_per_sample=self.proposals_per_sample))
+            delta=self.check_delta, proposals_per_sample=self.proposals_per_sample, refine_steps=self.refine_steps))
 
 
 @dataclass

@@ -104,8 +104,8 @@ class CheckedSamplerConfig:
     max_proposals: int = 2000
     fill_with_nearest_misses: bool = True
     refine_misses: int = 20
-    refine_steps: int = 0
-    refine_rate: float = 0.1
+    refine_steps: int = 3
+    refine_rate: float = 0.2
     refine_anchor: float = 0.01
 
     def __post_init__(self) -> None:
@@ -462,12 +462,14 @@ class CheckedSampler:
             source = np.concatenate([source, np.full(len(misses), len(SOURCES))])
             refine_s = time.perf_counter() - t_refine
         accepted = np.flatnonzero(ok)
+        refined_count = int(np.sum(source == len(SOURCES)))
+        proposed = f"{len(ok)}" + (f" ({refined_count} of them refined)" if refined_count else "")
         note = ""
         if len(accepted) == 0:
-            note = (f"no proposal of {len(ok)} agrees with the view (delta {self.sampler_config.delta:g} m); "
+            note = (f"no proposal of {proposed} agrees with the view (delta {self.sampler_config.delta:g} m); "
                     f"returning the {min(int(num_samples), len(ok))} least-violating ones")
         elif len(accepted) < num_samples and self.sampler_config.fill_with_nearest_misses:
-            note = (f"only {len(accepted)} of {len(ok)} proposals agree with the view (delta "
+            note = (f"only {len(accepted)} of {proposed} proposals agree with the view (delta "
                     f"{self.sampler_config.delta:g} m); the least-violating others make up the {int(num_samples)}")
         chosen, weights = spread_selection(packed, ok, check.badness(missed, free), int(num_samples),
                                            fill=self.sampler_config.fill_with_nearest_misses)
