@@ -33,8 +33,9 @@ behind a slit all narrower than the truth). The view itself says what is allowed
    distance of their occupancy (1 - IoU), starting from the first accepted posterior proposal; each selected
    sample's **weight** is the share of accepted proposals nearest to it (sums to 1), which the grasp score uses.
 
-When fewer proposals are accepted than requested, the accepted ones are repeated (their weight split among the
-copies); when none is, the least-violating proposals are returned and the result's ``note`` says so.
+When fewer proposals (refined ones included) are accepted than requested, the least-violating rejected ones make
+up the number (``fill_with_nearest_misses``; without it the accepted ones are repeated, their weight split among
+the copies); when none is, the least-violating proposals are returned; the result's ``note`` says which.
 
 The check runs in the grid, not in the image: the grid is what the network saw, and a proposal is only known
 at voxel resolution. Rendering each of hundreds of voxel grids into the depth image would cost more than the
