@@ -8,8 +8,10 @@
    over the network time the node itself reports for the same calls (its answer's message); the in-process
    stages split the rest from transport, executors and client. A transport floor (the same request refused at
    once) is printed too.
-2. Sampler cost: the same request (grasps on) with the node's ``sampler`` set to posterior, then checked: p50 of
-   each and their ratio (the checked sampler decodes ``proposals_per_sample`` x more latents and checks them).
+2. Sampler cost: the same request (grasps on) with the node's ``sampler`` set to posterior, then checked (as the
+   node runs it, refining its nearest misses), then checked with ``refine_steps`` 0, interleaved call by call: p50
+   of each and their ratios (the checked sampler decodes ``proposals_per_sample`` x more latents and checks them;
+   the refinement adds three gradient steps on 20 of them).
 3. Sustained topic rate: the camera publishes at 30 Hz, the node runs in continuous mode with max_rate_hz
    ``--max-rate``; reports the completion rate, the input stamp -> output received latency, and how many sets
    were superseded (dropped, never queued).
@@ -28,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pssnet_core.pipeline import PipelineConfig
 from pssnet_testing.client import SAMPLE_SERVICE, RosClient, wait_until
 from pssnet_testing.node_under_test import NodeUnderTest
 from pssnet_testing.processes import claim_domain_id, stale_shm_files
@@ -35,6 +38,7 @@ from pssnet_testing.synthetic_camera import SceneOptions, render_scene
 
 # Parts 1 and 3 measure the node's overheads around one network pass: the posterior sampler, whatever the default.
 POSTERIOR = "posterior"
+CHECKED_REFINE_STEPS = PipelineConfig().refine_steps  # the node's default
 
 
 def percentiles(values_s: list[float]) -> str:
@@ -183,11 +187,14 @@ def main() -> int:
             # Sampler cost: posterior against checked, interleaved call by call (same load for both).
             request = SampleCompletions.Request(depth=header_depth, mask=mask, camera_info=info,
                                                 num_samples=args.samples, compute_grasps=True)
-            samplers = ("posterior", "checked")
-            by_sampler: dict[str, list[float]] = {name: [] for name in samplers}
+            # The checked sampler as the node runs it (refining its nearest misses) and without the refinement.
+            settings = {"posterior": {"sampler": "posterior"},
+                        "checked": {"sampler": "checked", "refine_steps": CHECKED_REFINE_STEPS},
+                        "checked, refine_steps 0": {"sampler": "checked", "refine_steps": 0}}
+            by_sampler: dict[str, list[float]] = {name: [] for name in settings}
             for call in range(args.calls + 2):
-                for name in samplers:
-                    assert all(r.successful for r in ros.set_parameters(sampler=name))
+                for name, params in settings.items():
+                    assert all(r.successful for r in ros.set_parameters(**params))
                     t0 = time.perf_counter()
                     response = ros.call(service, request)
                     if call >= 2:  # the first two rounds warm up
@@ -195,12 +202,15 @@ def main() -> int:
                     assert response.success, response.message
             p50 = {name: float(np.percentile(v, 50) * 1000) for name, v in by_sampler.items()}
             results["samplers"] = {"p50_ms": p50, "checked_over_posterior": p50["checked"] / p50["posterior"],
+                                   "unrefined_over_posterior": p50["checked, refine_steps 0"] / p50["posterior"],
                                    "calls": args.calls}
-            for name in samplers:
+            for name in settings:
                 print(f"[bench] sampler {name}, grasps on: {percentiles(by_sampler[name])}")
-            print(f"[bench] checked / posterior p50 = {p50['checked']:.1f} / {p50['posterior']:.1f} ms = "
-                  f"{p50['checked'] / p50['posterior']:.2f}x (target <= 2x)")
-            assert all(r.successful for r in ros.set_parameters(sampler=POSTERIOR))
+            for name in ("checked", "checked, refine_steps 0"):
+                print(f"[bench] {name} / posterior p50 = {p50[name]:.1f} / {p50['posterior']:.1f} ms = "
+                      f"{p50[name] / p50['posterior']:.2f}x (target <= 2x)")
+            assert all(r.successful for r in ros.set_parameters(sampler=POSTERIOR,
+                                                                refine_steps=CHECKED_REFINE_STEPS))
 
             # Sustained topic rate in continuous mode.
             result = ros.set_parameters(max_rate_hz=float(args.max_rate), continuous=True)

@@ -242,6 +242,14 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
         return check.badness(*check.violations(occupancy, BitRows.pack(occupancy)))
 
     assert badness(refined).mean() < 0.5 * badness(unrefined).mean()
+    # Only where the pool falls short, when so configured: this view's pool is full under the default check and
+    # short under a check that accepts nothing.
+    lazy = CheckedSamplerConfig(refine_only_short_pools=True)
+    full = CheckedSampler(completer, lazy).complete(observation, num_samples=5, seed=0)
+    assert full.accepted >= 5 and full.refine_s == 0 and full.accepted_by_source[REFINED] == 0
+    strict = replace(lazy, max_missed_fraction=0.0, max_free_voxels=0)
+    short = CheckedSampler(completer, strict).complete(observation, num_samples=5, seed=0)
+    assert short.refine_s > 0 and short.proposals == full.proposals + strict.refine_misses
 
 
 def test_checked_sampler_refines_its_nearest_misses_and_counts_them():

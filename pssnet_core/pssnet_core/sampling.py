@@ -92,6 +92,8 @@ class CheckedSamplerConfig:
         refine_rate: Adam's learning rate on the latent (prior units).
         refine_anchor: weight of the squared distance from the proposal's own latent (keeps the refined proposal
             what it was where the view says nothing).
+        refine_only_short_pools: refine only when fewer proposals than requested samples pass the check (the
+            cost is then paid where the pool falls short, not on every call).
     """
 
     proposals_per_sample: int = 10
@@ -108,6 +110,7 @@ class CheckedSamplerConfig:
     refine_steps: int = 3
     refine_rate: float = 0.2
     refine_anchor: float = 0.01
+    refine_only_short_pools: bool = False
 
     def __post_init__(self) -> None:
         if not 1 <= self.proposals_per_sample <= 100:
@@ -448,7 +451,8 @@ class CheckedSampler:
         refine_s = 0.0
         misses = np.argsort(np.where(ok, np.inf, check.badness(missed, free)), kind="stable")[:config.refine_misses]
         misses = misses[~ok[misses]]
-        if config.refine_steps and len(misses):
+        short = int(ok.sum()) < num_samples
+        if config.refine_steps and len(misses) and (short or not config.refine_only_short_pools):
             t_refine = time.perf_counter()
             refined = self.refine(latents[torch.as_tensor(misses, device=latents.device)], known_occupied, check)
             refined_occupancy = (refined > 0.5).cpu().numpy()
