@@ -226,8 +226,9 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
     original_decode = model.decode
     model.decode = lambda z: (decoded.append(z.detach().clone()), original_decode(z))[1]
     try:
-        refined = CheckedSampler(completer, CheckedSamplerConfig(refine_steps=3)).refine(
-            latents, observation.known_occupied, check)
+        with torch.inference_mode():  # as a caller may run it: the refinement still gets its gradients
+            refined = CheckedSampler(completer, CheckedSamplerConfig(refine_steps=3)).refine(
+                latents, observation.known_occupied, check)
     finally:
         model.decode = original_decode
     box = model.box_dim

@@ -384,13 +384,15 @@ class CheckedSampler:
         model = self.completer.model
         config = self.sampler_config
         box = model.box_dim if self.has_box_latent else 0
-        start = latents.detach().clone().float()  # out of inference mode: autograd may use it
-        rest = start[:, box:].clone().requires_grad_(True)
         device = latents.device
-        observed = torch.as_tensor(np.flatnonzero(known_occupied.reshape(-1)), device=device)
-        deep_free = torch.as_tensor(np.flatnonzero(check.deep_free), device=device)
-        optimizer = torch.optim.Adam([rest], lr=config.refine_rate)
-        with torch.enable_grad():
+        # Gradients even when a caller runs in inference mode (enable_grad alone does not leave it): every tensor
+        # the backward pass saves is made here, the latents (drawn in inference mode) copied into ordinary ones.
+        with torch.inference_mode(False), torch.enable_grad():
+            observed = torch.as_tensor(np.flatnonzero(known_occupied.reshape(-1)), device=device)
+            deep_free = torch.as_tensor(np.flatnonzero(check.deep_free), device=device)
+            start = latents.detach().float().clone()
+            rest = start[:, box:].clone().requires_grad_(True)
+            optimizer = torch.optim.Adam([rest], lr=config.refine_rate)
             for _ in range(config.refine_steps):
                 with self.completer.ctx.autocast():
                     logits = model.decode(torch.cat([start[:, :box], rest], 1)).reshape(len(rest), -1).float()
