@@ -223,14 +223,14 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
     check = GridCheck.prepare(observation.known_occupied, observation.known_free, observation.pose, 0.01)
     unrefined = plain.refine(latents, observation.known_occupied, check)  # no steps: the proposals decoded
     decoded: list[torch.Tensor] = []
-    original_decode = model.decode
-    model.decode = lambda z: (decoded.append(z.detach().clone()), original_decode(z))[1]
+    original_logits_at = model.decoder.logits_at
+    model.decoder.logits_at = lambda z, voxels: (decoded.append(z.detach().clone()), original_logits_at(z, voxels))[1]
     try:
         with torch.inference_mode():  # as a caller may run it: the refinement still gets its gradients
             refined = CheckedSampler(completer, CheckedSamplerConfig(refine_steps=3)).refine(
                 latents, observation.known_occupied, check)
     finally:
-        model.decode = original_decode
+        model.decoder.logits_at = original_logits_at
     box = model.box_dim
     assert len(decoded) == 3 and all(torch.equal(z[:, :box], latents[:, :box].float()) for z in decoded)
     assert not torch.equal(decoded[-1][:, box:], latents[:, box:].float())  # the rest moved
@@ -251,6 +251,18 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
     strict = replace(lazy, max_missed_fraction=0.0, max_free_voxels=0)
     short = CheckedSampler(completer, strict).complete(observation, num_samples=5, seed=0)
     assert short.refine_s > 0 and short.proposals == full.proposals + strict.refine_misses
+
+
+def test_decoder_logits_at_some_voxels_are_the_full_decode_there_with_gradients():
+    model = tiny_model("pssnet", N).eval()
+    z = torch.randn(3, model.latent_dim, generator=torch.Generator().manual_seed(2), requires_grad=True)
+    voxels = torch.tensor([0, 5, N**3 - 1, 1234, 1234, 777])
+    full = model.decoder(z).reshape(3, -1)[:, voxels]
+    some = model.decoder.logits_at(z, voxels)
+    torch.testing.assert_close(some, full)
+    (grad_some,) = torch.autograd.grad(some.sum(), [z])
+    (grad_full,) = torch.autograd.grad(model.decoder(z).reshape(3, -1)[:, voxels].sum(), [z])
+    torch.testing.assert_close(grad_some, grad_full)
 
 
 def test_checked_sampler_refines_its_nearest_misses_and_counts_them():

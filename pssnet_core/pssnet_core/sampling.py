@@ -388,16 +388,18 @@ class CheckedSampler:
         # Gradients even when a caller runs in inference mode (enable_grad alone does not leave it): every tensor
         # the backward pass saves is made here, the latents (drawn in inference mode) copied into ordinary ones.
         with torch.inference_mode(False), torch.enable_grad():
-            observed = torch.as_tensor(np.flatnonzero(known_occupied.reshape(-1)), device=device)
-            deep_free = torch.as_tensor(np.flatnonzero(check.deep_free), device=device)
+            observed = np.flatnonzero(known_occupied.reshape(-1))
+            # Only the voxels the loss reads are decoded into logits (the observed ones, then the deep-free ones).
+            voxels = torch.as_tensor(np.concatenate([observed, np.flatnonzero(check.deep_free)]), device=device)
             start = latents.detach().float().clone()
             rest = start[:, box:].clone().requires_grad_(True)
             optimizer = torch.optim.Adam([rest], lr=config.refine_rate)
             for _ in range(config.refine_steps):
                 with self.completer.ctx.autocast():
-                    logits = model.decode(torch.cat([start[:, :box], rest], 1)).reshape(len(rest), -1).float()
-                unexplained = torch.nn.functional.softplus(-logits[:, observed]).mean(1)
-                seen_through = torch.nn.functional.softplus(logits[:, deep_free]).sum(1) / max(len(observed), 1)
+                    logits = model.decoder.logits_at(torch.cat([start[:, :box], rest], 1), voxels).float()
+                unexplained = (torch.nn.functional.softplus(-logits[:, :len(observed)]).mean(1) if len(observed)
+                               else logits.new_zeros(len(logits)))
+                seen_through = torch.nn.functional.softplus(logits[:, len(observed):]).sum(1) / max(len(observed), 1)
                 anchor = config.refine_anchor * (rest - start[:, box:]).square().sum()
                 loss = (unexplained + seen_through).sum() + anchor
                 # Only the latent's gradient: the decoder's weights stay out of the backward pass.
