@@ -460,14 +460,15 @@ class CheckedSampler:
             t_refine = time.perf_counter()
             refined = self.refine(latents[torch.as_tensor(misses, device=latents.device)], known_occupied, check)
             refined_occupancy = (refined > 0.5).cpu().numpy()
-            refined_missed, refined_free = check.violations(refined_occupancy, BitRows.pack(refined_occupancy))
+            refined_packed = BitRows.pack(refined_occupancy)
+            refined_missed, refined_free = check.violations(refined_occupancy, refined_packed)
             # The same limits as the proposals' (the posterior's median miss set on those).
             limit_source = np.concatenate([source == 0, np.zeros(len(misses), bool)])
             missed, free = np.concatenate([missed, refined_missed]), np.concatenate([free, refined_free])
             ok = config.accepts(missed, free, limit_source)
             probs = torch.cat([probs, refined])
             occupancy = np.concatenate([occupancy, refined_occupancy])
-            packed = BitRows.pack(occupancy)
+            packed = BitRows(np.concatenate([packed.words, refined_packed.words]))  # the proposals' rows as packed
             source = np.concatenate([source, np.full(len(misses), len(SOURCES))])
             refine_s = time.perf_counter() - t_refine
         accepted = np.flatnonzero(ok)
