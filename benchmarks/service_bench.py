@@ -192,6 +192,7 @@ def main() -> int:
                         "checked": {"sampler": "checked", "refine_steps": CHECKED_REFINE_STEPS},
                         "checked, refine_steps 0": {"sampler": "checked", "refine_steps": 0}}
             by_sampler: dict[str, list[float]] = {name: [] for name in settings}
+            said: dict[str, str] = {}  # the node's own stage times, last call per sampler
             for call in range(args.calls + 2):
                 for name, params in settings.items():
                     assert all(r.successful for r in ros.set_parameters(**params))
@@ -200,12 +201,14 @@ def main() -> int:
                     if call >= 2:  # the first two rounds warm up
                         by_sampler[name].append(time.perf_counter() - t0)
                     assert response.success, response.message
+                    said[name] = response.message
             p50 = {name: float(np.percentile(v, 50) * 1000) for name, v in by_sampler.items()}
             results["samplers"] = {"p50_ms": p50, "checked_over_posterior": p50["checked"] / p50["posterior"],
                                    "unrefined_over_posterior": p50["checked, refine_steps 0"] / p50["posterior"],
                                    "calls": args.calls}
             for name in settings:
-                print(f"[bench] sampler {name}, grasps on: {percentiles(by_sampler[name])}")
+                print(f"[bench] sampler {name}, grasps on: {percentiles(by_sampler[name])} (last call, node says: "
+                      f"{said[name]})")
             for name in ("checked", "checked, refine_steps 0"):
                 print(f"[bench] {name} / posterior p50 = {p50[name]:.1f} / {p50['posterior']:.1f} ms = "
                       f"{p50[name] / p50['posterior']:.2f}x (target <= 2x)")

@@ -66,7 +66,7 @@ def main() -> None:
         generator = torch.Generator().manual_seed(view.index)
         _, probabilities = sampler.propose(completer.network_input(view), counts, generator,
                                            completer.box_temperature)
-        occupancy = probabilities.numpy() > 0.5
+        occupancy = probabilities[:, completer.model.decoder.block_order()].numpy() > 0.5  # in spatial order
         packed = BitRows.pack(occupancy)
         check = GridCheck.prepare(view.known_occupied, view.known_free, view.grid_pose, config.delta)
         missed, free = check.violations(occupancy, packed)

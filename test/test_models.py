@@ -364,7 +364,7 @@ def test_fused_bf16_inference_matches_fused_fp32(channels, grid, batch_size, ker
         with torch.autocast("cpu", dtype=torch.bfloat16):
             encoded_bf16, probs_bf16 = encoder(x), decoder.probabilities(z)
     for module in (encoder, decoder):  # the fused bf16 path ran, with the kernel asked for
-        assert {p.onednn for p in networks._PACKED[module][torch.bfloat16][1]} == {kernel == "onednn"}
+        assert {p.onednn for p in networks._PACKED[module][("forward", torch.bfloat16)][1]} == {kernel == "onednn"}
     assert encoded_bf16.dtype == torch.bfloat16 and probs_bf16.dtype == torch.float32
     assert (encoded_bf16.float() - encoded).abs().max() <= 0.02 * encoded.abs().max()
     occupied = probs > 0.5

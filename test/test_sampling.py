@@ -65,6 +65,13 @@ def test_grid_check_counts_what_alg1_would_reject():
     missed, free = check.violations(grids, BitRows.pack(grids))
     np.testing.assert_allclose(missed, [0.0, 0.0, 1.0, 0.5, 0.0, 0.0])
     assert free.tolist() == [0, 0, 0, 0, 0, 8]
+    # The same check of the same grids stored in another voxel order (the decoder's block order).
+    order = np.random.default_rng(1).permutation(N**3)
+    stored = np.zeros_like(grids)
+    stored[:, order] = grids
+    reordered = check.reordered(order).violations(stored, BitRows.pack(stored))
+    np.testing.assert_array_equal(reordered[0], missed)
+    np.testing.assert_array_equal(reordered[1], free)
 
 
 def test_packed_jaccard_and_farthest_point_selection_with_cell_weights():
@@ -221,16 +228,21 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
     latents, _ = plain.propose(completer.network_input(observation), counts, torch.Generator().manual_seed(0),
                                completer.box_temperature)
     check = GridCheck.prepare(observation.known_occupied, observation.known_free, observation.pose, 0.01)
-    unrefined = plain.refine(latents, observation.known_occupied, check)  # no steps: the proposals decoded
+    # The refinement works in the decoder's block order: its inputs reordered, its probabilities put back.
+    order = model.decoder.block_order()
+    observed = np.zeros(len(order), bool)
+    observed[order.numpy()] = observation.known_occupied.reshape(-1)
+    in_blocks = check.reordered(order.numpy())
+    unrefined = plain.refine(latents, observed, in_blocks)[:, order]  # no steps: as proposed
     decoded: list[torch.Tensor] = []
-    original_logits_at = model.decoder.logits_at
-    model.decoder.logits_at = lambda z, voxels: (decoded.append(z.detach().clone()), original_logits_at(z, voxels))[1]
+    original = model.decoder.logits_and_pullback
+    model.decoder.logits_and_pullback = lambda z, dtype: (decoded.append(z.clone()), original(z, dtype))[1]
     try:
-        with torch.inference_mode():  # as a caller may run it: the refinement still gets its gradients
+        with torch.inference_mode():  # as a caller may run it
             refined = CheckedSampler(completer, CheckedSamplerConfig(refine_steps=3)).refine(
-                latents, observation.known_occupied, check)
+                latents, observed, in_blocks)[:, order]
     finally:
-        model.decoder.logits_at = original_logits_at
+        del model.decoder.logits_and_pullback  # the class's method again
     box = model.box_dim
     assert len(decoded) == 3 and all(torch.equal(z[:, :box], latents[:, :box].float()) for z in decoded)
     assert not torch.equal(decoded[-1][:, box:], latents[:, box:].float())  # the rest moved
@@ -253,16 +265,35 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
     assert short.refine_s > 0 and short.proposals == full.proposals + strict.refine_misses
 
 
-def test_decoder_logits_at_some_voxels_are_the_full_decode_there_with_gradients():
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_decoder_pullback_is_the_gradient_autograd_gives(dtype):
+    """Logits in block order equal to the decoder's, and the pullback of a gradient on them equal to autograd's
+    through the decoder; in bf16 within its rounding."""
     model = tiny_model("pssnet", N).eval()
     z = torch.randn(3, model.latent_dim, generator=torch.Generator().manual_seed(2), requires_grad=True)
-    voxels = torch.tensor([0, 5, N**3 - 1, 1234, 1234, 777])
-    full = model.decoder(z).reshape(3, -1)[:, voxels]
-    some = model.decoder.logits_at(z, voxels)
-    torch.testing.assert_close(some, full)
-    (grad_some,) = torch.autograd.grad(some.sum(), [z])
-    (grad_full,) = torch.autograd.grad(model.decoder(z).reshape(3, -1)[:, voxels].sum(), [z])
-    torch.testing.assert_close(grad_some, grad_full)
+    full = model.decoder(z).reshape(3, -1)
+    upstream = torch.randn(full.shape, generator=torch.Generator().manual_seed(3))
+    (expected,) = torch.autograd.grad((full * upstream).sum(), [z])
+    with torch.inference_mode():
+        logits, pullback = model.decoder.logits_and_pullback(z.detach(), dtype)
+        order = model.decoder.block_order()
+        gradient = pullback(upstream[:, torch.argsort(order)])  # the upstream gradient in block order
+    tolerance = {} if dtype == torch.float32 else {"rtol": 0.05, "atol": 0.05 * float(expected.abs().max())}
+    torch.testing.assert_close(logits[:, order], full.detach(), **tolerance)
+    torch.testing.assert_close(gradient, expected, **tolerance)
+    assert all(p.grad is None for p in model.parameters())
+
+
+def test_decoder_probabilities_in_block_order_are_the_grid_reordered():
+    model = tiny_model("pssnet", N).eval()
+    z = torch.randn(2, model.latent_dim, generator=torch.Generator().manual_seed(4))
+    order = model.decoder.block_order()
+    with torch.inference_mode():
+        spatial = model.decoder.probabilities(z).reshape(2, -1)
+        blocks = model.decoder.probabilities(z, spatial=False)  # the fused path
+    plain = model.decoder.probabilities(z, spatial=False).detach()  # with autograd on: the plain path
+    torch.testing.assert_close(blocks[:, order], spatial)
+    torch.testing.assert_close(plain[:, order], spatial)
 
 
 def test_checked_sampler_refines_its_nearest_misses_and_counts_them():

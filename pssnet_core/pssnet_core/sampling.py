@@ -240,6 +240,14 @@ class GridCheck:
         deep[np.ravel_multi_index(tuple(free_ijk.T), (n, n, n))] = (behind < 0) | free_flat[np.maximum(behind, 0)]
         return cls(observed_rays=observed, deep_free=deep)
 
+    def reordered(self, order: np.ndarray) -> GridCheck:
+        """The same check of grids whose voxels are stored in another order: ``order[v]`` is where spatial voxel
+        ``v`` lies (the decoder's block order, :meth:`Decoder3D.block_order`)."""
+        deep_free = np.zeros_like(self.deep_free)
+        deep_free[order] = self.deep_free
+        rays = self.observed_rays
+        return GridCheck(observed_rays=np.where(rays < 0, -1, order[np.maximum(rays, 0)]), deep_free=deep_free)
+
     def violations(self, occupancy: np.ndarray, packed: BitRows) -> tuple[np.ndarray, np.ndarray]:
         """Per proposal of a (P, N^3) bool array (and the same packed): the fraction of observed voxels left
         unexplained, and the number of occupied deep-free voxels."""
@@ -355,7 +363,8 @@ class CheckedSampler:
     def propose(self, x: torch.Tensor, counts: dict[str, int], generator: torch.Generator,
                 box_temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
         """The proposals of each source, in ``SOURCES`` order: (P, latent_dim) latents and (P, N^3) float32
-        occupancy probabilities."""
+        occupancy probabilities in the decoder's block order (``model.decoder.block_order()``: the check and the
+        selection run in that order; only the chosen samples are put in spatial order)."""
         model = self.completer.model
         box = model.box_dim
         with torch.inference_mode(), self.completer.ctx.autocast():
@@ -373,41 +382,41 @@ class CheckedSampler:
             if counts["turned_box"]:
                 latents.append(self._turned_latents(mu, logvar, counts["turned_box"], generator, box_temperature))
             z = torch.cat(latents)
-            probs = model.decode_probabilities(z)
-        return z, probs.reshape(probs.shape[0], -1).float()
+            probs = model.decode_probabilities(z, spatial=False)
+        return z, probs
 
-    def refine(self, latents: torch.Tensor, known_occupied: np.ndarray, check: GridCheck) -> torch.Tensor:
+    def refine(self, latents: torch.Tensor, observed: np.ndarray, check: GridCheck) -> torch.Tensor:
         """(R, N^3) float32 occupancy probabilities of ``latents`` after ``refine_steps`` Adam steps on the rest of
         each latent (the box code, where the model has one, held fixed) minimising, per proposal, the mean
         -log p over the observed voxels plus the sum of -log(1 - p) over the deep-free ones (on the observed
-        voxels' scale), plus ``refine_anchor`` times the squared distance from where it started."""
+        voxels' scale), plus ``refine_anchor`` times the squared distance from where it started. ``observed``
+        (N^3 bool), ``check`` and the result are in the decoder's block order (:meth:`GridCheck.reordered`)."""
         model = self.completer.model
         config = self.sampler_config
         box = model.box_dim if self.has_box_latent else 0
         device = latents.device
-        # Gradients even when a caller runs in inference mode (enable_grad alone does not leave it): every tensor
-        # the backward pass saves is made here, the latents (drawn in inference mode) copied into ordinary ones.
-        with torch.inference_mode(False), torch.enable_grad():
-            observed = np.flatnonzero(known_occupied.reshape(-1))
-            # Only the voxels the loss reads are decoded into logits (the observed ones, then the deep-free ones).
-            voxels = torch.as_tensor(np.concatenate([observed, np.flatnonzero(check.deep_free)]), device=device)
-            start = latents.detach().float().clone()
-            rest = start[:, box:].clone().requires_grad_(True)
+        dtype = self.completer.ctx.autocast_dtype or torch.float32
+        # The loss's gradient with respect to each logit is weight * sigmoid(sign * logit): sign -1 and weight
+        # -1 / n on the n observed voxels (d/dl of softplus(-l) / n), sign +1 and weight 1 / n on the deep-free
+        # ones, 0 elsewhere.
+        seen = torch.as_tensor(observed, device=device)
+        scale = 1.0 / max(int(seen.sum()), 1)
+        sign = torch.where(seen, -1.0, 1.0)
+        seen_through = torch.as_tensor(check.deep_free, device=device) & ~seen
+        weight = torch.where(seen, -scale, torch.where(seen_through, scale, 0.0))
+        # No autograd: the decoder's pullback gives the latent's gradient (Decoder3D.logits_and_pullback), in
+        # inference mode whether or not the caller is in it.
+        with torch.inference_mode():
+            start = latents.float()
+            rest = start[:, box:].clone()
             optimizer = torch.optim.Adam([rest], lr=config.refine_rate)
             for _ in range(config.refine_steps):
-                with self.completer.ctx.autocast():
-                    logits = model.decoder.logits_at(torch.cat([start[:, :box], rest], 1), voxels).float()
-                unexplained = (torch.nn.functional.softplus(-logits[:, :len(observed)]).mean(1) if len(observed)
-                               else logits.new_zeros(len(logits)))
-                seen_through = torch.nn.functional.softplus(logits[:, len(observed):]).sum(1) / max(len(observed), 1)
-                anchor = config.refine_anchor * (rest - start[:, box:]).square().sum()
-                loss = (unexplained + seen_through).sum() + anchor
-                # Only the latent's gradient: the decoder's weights stay out of the backward pass.
-                (rest.grad,) = torch.autograd.grad(loss, [rest])
+                logits, pullback = model.decoder.logits_and_pullback(torch.cat([start[:, :box], rest], 1), dtype)
+                rest.grad = (pullback(weight * torch.sigmoid(sign * logits))[:, box:]
+                             + 2 * config.refine_anchor * (rest - start[:, box:]))
                 optimizer.step()
-        with torch.inference_mode(), self.completer.ctx.autocast():
-            probs = model.decode_probabilities(torch.cat([start[:, :box], rest.detach()], 1))
-        return probs.reshape(probs.shape[0], -1).float()
+            with self.completer.ctx.autocast():
+                return model.decode_probabilities(torch.cat([start[:, :box], rest], 1), spatial=False)
 
     def _turned_latents(self, mu: torch.Tensor, logvar: torch.Tensor, count: int, generator: torch.Generator,
                         box_temperature: float) -> torch.Tensor:
@@ -443,11 +452,15 @@ class CheckedSampler:
         t0 = time.perf_counter()
         latents, probs = self.propose(x, counts, generator, float(temperature))
         # Only the occupancy leaves the model's device for the check (a quarter of the bytes of the probabilities
-        # on a GPU); the chosen samples' probabilities follow at the end.
+        # on a GPU), in the decoder's block order as the check; the chosen samples' probabilities follow at the end.
         occupancy = (probs > 0.5).cpu().numpy()
         t1 = time.perf_counter()
         config = self.sampler_config
-        check = GridCheck.prepare(known_occupied, known_free, pose, config.delta, getattr(observation, "views", ()))
+        block_order = self.model.decoder.block_order()
+        check = GridCheck.prepare(known_occupied, known_free, pose, config.delta,
+                                  getattr(observation, "views", ())).reordered(block_order.numpy())
+        observed = np.zeros(len(block_order), bool)
+        observed[block_order.numpy()] = known_occupied.reshape(-1)
         packed = BitRows.pack(occupancy)
         missed, free = check.violations(occupancy, packed)
         source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
@@ -458,7 +471,7 @@ class CheckedSampler:
         short = int(ok.sum()) < num_samples
         if config.refine_steps and len(misses) and (short or not config.refine_only_short_pools):
             t_refine = time.perf_counter()
-            refined = self.refine(latents[torch.as_tensor(misses, device=latents.device)], known_occupied, check)
+            refined = self.refine(latents[torch.as_tensor(misses, device=latents.device)], observed, check)
             refined_occupancy = (refined > 0.5).cpu().numpy()
             refined_packed = BitRows.pack(refined_occupancy)
             refined_missed, refined_free = check.violations(refined_occupancy, refined_packed)
@@ -495,7 +508,8 @@ class CheckedSampler:
                 note = (f"only {distinct} distinct completions among {len(accepted)} of {len(ok)} proposals agree "
                         "with the view; some are repeated")
         n = self.completer.grid_size
-        chosen_probs = probs[torch.as_tensor(chosen, device=probs.device)].cpu().numpy().reshape(-1, n, n, n)
+        chosen_probs = probs[torch.as_tensor(chosen, device=probs.device)][:, block_order.to(probs.device)]
+        chosen_probs = chosen_probs.cpu().numpy().reshape(-1, n, n, n)
         t2 = time.perf_counter()
         return CheckedResult(probabilities=chosen_probs, occupancy=chosen_probs > 0.5, grid_size=n, seed=int(seed),
                              model=self.completer.model_name, elapsed_s=t2 - t0, weights=weights.astype(np.float32),

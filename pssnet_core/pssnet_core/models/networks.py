@@ -169,7 +169,7 @@ def pack_linear(weight: torch.Tensor, bias: torch.Tensor | None, dtype: torch.dt
     so the bf16 path can be tested there)."""
     w = weight.detach().to(dtype).contiguous()
     b = None if bias is None else bias.detach().to(dtype).contiguous()
-    if onednn_runs(dtype):
+    if w.device.type == "cpu" and onednn_runs(dtype):
         return PackedLinear(torch.ops.mkldnn._reorder_linear_weight(w), b, True)
     return PackedLinear(w.t(), b, False)
 
@@ -189,19 +189,20 @@ def fused_dtype(x: torch.Tensor) -> torch.dtype | None:
     return torch.bfloat16 if torch.get_autocast_dtype("cpu") == torch.bfloat16 else None
 
 
-_PackCache = dict[torch.dtype, tuple[tuple[tuple[int, int], ...], list[PackedLinear]]]
+_PackCache = dict[tuple[str, torch.dtype], tuple[tuple[tuple[int, int], ...], list[PackedLinear]]]
 _PACKED: weakref.WeakKeyDictionary[nn.Module, _PackCache] = weakref.WeakKeyDictionary()
 
 
 def packed_linears(module: nn.Module, weights: Callable[[], list[tuple[torch.Tensor, torch.Tensor | None]]],
-                   dtype: torch.dtype) -> list[PackedLinear]:
-    """The ((N, K) weight, bias) pairs that ``weights()`` gives, packed in ``dtype``; cached per module and dtype
-    until any of its parameters changes (storage or in-place version: optimizer steps, load_state_dict, .to())."""
+                   dtype: torch.dtype, purpose: str = "forward") -> list[PackedLinear]:
+    """The ((N, K) weight, bias) pairs that ``weights()`` gives, packed in ``dtype``; cached per module, ``purpose``
+    (one module may pack several sets) and dtype until any of its parameters changes (storage or in-place version:
+    optimizer steps, load_state_dict, .to())."""
     key = tuple((p.data_ptr(), p._version) for p in module.parameters())
-    per_dtype = _PACKED.setdefault(module, {})
-    cached = per_dtype.get(dtype)
+    per_set = _PACKED.setdefault(module, {})
+    cached = per_set.get((purpose, dtype))
     if cached is None or cached[0] != key:
-        cached = per_dtype[dtype] = (key, [pack_linear(w, b, dtype) for w, b in weights()])
+        cached = per_set[(purpose, dtype)] = (key, [pack_linear(w, b, dtype) for w, b in weights()])
     return cached[1]
 
 
@@ -300,40 +301,68 @@ class Decoder3D(nn.Module):
         side = (self.side,) * 3
         return blocks_to_grid(rows, h.shape[0], side, stages)
 
-    def logits_at(self, z: torch.Tensor, voxels: torch.Tensor) -> torch.Tensor:
-        """(B, V) occupancy logits of ``voxels`` (flat indices into one (N, N, N) grid in spatial order), equal to
-        ``self(z).reshape(B, -1)[:, voxels]``, for gradients with respect to ``z``: the stages run on voxel rows in
-        block order with out-of-place ReLUs and the wanted voxels are gathered there. Why: through ``forward``
-        the backward pass copies each in-place ReLU's view back (CopySlices) and unshuffles the whole grid;
-        those copies were ~45 % of the checked sampler's refinement steps."""
-        rows = torch.relu(self.dense(z)).view(-1, self.top, self.side**3).transpose(1, 2).reshape(-1, self.top)
-        layers = [m for m in self.deconv if isinstance(m, BlockDeconv3d)]
-        for i, layer in enumerate(layers):
-            rows = layer.block_rows(rows)
-            if i < len(layers) - 1:
-                rows = torch.relu(rows)
-        rows = rows.view(z.shape[0], -1)
-        return rows[:, grid_order(self.side, len(layers)).to(voxels.device)[voxels]]
+    def block_order(self) -> torch.Tensor:
+        """(N^3,) int64: for each voxel of the output grid in spatial order, its place in block order (the order
+        :meth:`logits_and_pullback` gives logits in)."""
+        return grid_order(self.side, len(self._stages()))
 
-    def probabilities(self, z: torch.Tensor) -> torch.Tensor:
-        """sigmoid(self(z)), (B, 1, N, N, N) float32. Where the fused path runs (``sample``'s case on the CPU, see
-        :func:`fused_dtype`): each stage one fused matmul (+ bias + ReLU) in fp32 or bf16, in block order, the
-        stages after the first on chunks of rows; the sigmoid of the last stage's logits in fp32; one gather into
-        spatial order."""
+    def _stages(self) -> list[BlockDeconv3d]:
+        return [m for m in self.deconv if isinstance(m, BlockDeconv3d)]
+
+    def _row_weights(self) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+        """The dense layer and the stages as ((out, in) weight, bias) pairs on voxel rows. The dense layer's outputs
+        are reordered from [C, voxel] to [voxel, C]: its (B, b^3 * C) output then is the first stage's voxel rows
+        (B * b^3, C) without a transpose."""
+        voxels = self.side**3
+        dense = self.dense.weight.view(self.top, voxels, -1).transpose(0, 1).reshape(self.top * voxels, -1)
+        bias = self.dense.bias.view(self.top, voxels).t().reshape(-1)
+        return [(dense, bias)] + [(m.row_weight(), None if m.bias is None else m.bias.repeat(8))
+                                  for m in self._stages()]
+
+    def logits_and_pullback(self, z: torch.Tensor, dtype: torch.dtype
+                            ) -> tuple[torch.Tensor, Callable[[torch.Tensor], torch.Tensor]]:
+        """(B, N^3) float32 occupancy logits of latents ``z`` in block order (:meth:`block_order`), and their
+        pullback: a function from dL/dlogits (B, N^3, block order) to dL/dz (B, latent_dim), float32. Computed in
+        ``dtype`` without autograd, the decoder's weights packed once as for :meth:`probabilities`; no weight
+        gradients. For the checked sampler's refinement, which needs the latent's gradient of a loss on the
+        logits. Why by hand: through autograd (under autocast) each step cast every weight, broadcast the biases
+        into the outputs, ran separate ReLUs and copied views back; the forward here is the fused inference path
+        (keeping each stage's output) and the backward two passes per stage: the transposed matmul and the ReLU's
+        mask (BENCHMARKS.md, "The refinement's cost")."""
+        stages = self._stages()
+        forward = packed_linears(self, self._row_weights, dtype)
+        backward = packed_linears(self, lambda: [(w.t(), None) for w, _ in self._row_weights()], dtype, "pullback")
+        batch = z.shape[0]
+        rows = forward[0](z.to(dtype), "relu").view(-1, self.top)
+        kept = [rows]  # each ReLU's output: the dense layer's, then every stage's but the last
+        for k, (stage, linear) in enumerate(zip(stages, forward[1:], strict=True)):
+            last = k == len(stages) - 1
+            rows = linear(rows, "none" if last else "relu").view(-1, stage.out_channels)
+            if not last:
+                kept.append(rows)
+        logits = rows.view(batch, -1).float()
+
+        def pullback(grad: torch.Tensor) -> torch.Tensor:
+            g = grad.to(dtype).reshape(-1, 8 * stages[-1].out_channels)
+            for k in reversed(range(len(stages))):
+                g = torch.ops.aten.threshold_backward(backward[k + 1](g), kept[k], 0)  # at stage k's input
+                g = g.view(batch, -1) if k == 0 else g.view(-1, 8 * stages[k - 1].out_channels)
+            return backward[0](g).float()
+
+        return logits, pullback
+
+    def probabilities(self, z: torch.Tensor, spatial: bool = True) -> torch.Tensor:
+        """sigmoid(self(z)), (B, 1, N, N, N) float32; with ``spatial`` False (B, N^3) in block order
+        (:meth:`block_order`), for callers that read a few voxels of many grids. Where the fused path runs
+        (``sample``'s case on the CPU, see :func:`fused_dtype`): each stage one fused matmul (+ bias + ReLU) in fp32
+        or bf16, in block order, the stages after the first on chunks of rows; the sigmoid of the last stage's
+        logits in fp32; one gather into spatial order."""
         layers = [m for m in self.deconv if not isinstance(m, nn.ReLU)]
         dtype = fused_dtype(z)
         if dtype is None or not all(isinstance(m, BlockDeconv3d) for m in layers):
-            return torch.sigmoid(self(z).float())
-
-        def weights() -> list[tuple[torch.Tensor, torch.Tensor | None]]:
-            # Dense outputs reordered from [C, voxel] to [voxel, C]: its (B, b^3 * C) output then is the first
-            # stage's voxel rows (B * b^3, C) without a transpose.
-            voxels = self.side**3
-            dense = self.dense.weight.view(self.top, voxels, -1).transpose(0, 1).reshape(self.top * voxels, -1)
-            bias = self.dense.bias.view(self.top, voxels).t().reshape(-1)
-            return [(dense, bias)] + [(m.row_weight(), None if m.bias is None else m.bias.repeat(8)) for m in layers]
-
-        dense, *stages = packed_linears(self, weights, dtype)
+            probs = torch.sigmoid(self(z).float())
+            return probs if spatial else probs.view(z.shape[0], -1)[:, torch.argsort(self.block_order())]
+        dense, *stages = packed_linears(self, self._row_weights, dtype)
         rows = dense(z.to(dtype), "relu").view(-1, self.top)
         # The first stage runs whole; the later ones chunk by chunk of its output rows (each row's outputs stay
         # consecutive in block order), so that a chunk's intermediates stay in cache where the whole ones would
@@ -357,6 +386,8 @@ class Decoder3D(nn.Module):
             logits = tail_stages[-1](part).view(-1).float()
             torch.sigmoid(logits, out=probs[start * grow:start * grow + logits.shape[0]])
         probs = probs.view(z.shape[0], -1)
+        if not spatial:
+            return probs
         n = self.side * 2 ** len(layers)
         # A gather instead of blocks_to_grid's 3 * (stages + 1) + 2-dimensional permuted copy, which torch
         # walks two elements at a time (1.3 vs 16 ms median, 20 x 32^3).

@@ -87,9 +87,10 @@ class VAE(CompletionModel):
         """Occupancy logits (B,1,N,N,N)."""
         return self.decoder(z)
 
-    def decode_probabilities(self, z: torch.Tensor) -> torch.Tensor:
-        """Occupancy probabilities (B,1,N,N,N), fp32: sigmoid(decode(z)), fused without autograd on the CPU."""
-        return self.decoder.probabilities(z)
+    def decode_probabilities(self, z: torch.Tensor, spatial: bool = True) -> torch.Tensor:
+        """Occupancy probabilities (B,1,N,N,N), fp32: sigmoid(decode(z)), fused without autograd on the CPU; with
+        ``spatial`` False (B, N^3) in the decoder's block order (:meth:`Decoder3D.probabilities`)."""
+        return self.decoder.probabilities(z, spatial)
 
     def _vae_forward(self, x: torch.Tensor, ctx: StepContext
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
