@@ -126,7 +126,8 @@ def test_config_checks_and_proposal_counts():
     for bad in ({"proposals_per_sample": 0}, {"source_shares": (0.0, 0.0, 0.0, 0.0)}, {"delta": -0.01},
                 {"source_shares": (0.4, 0.2, 0.4)}, {"turned_rest_low": 1.5},
                 {"max_missed_fraction": 1.0}, {"widened_temperature": float("nan")}, {"max_free_voxels": -1},
-                {"refine_steps": -1}, {"refine_misses": 5000}, {"refine_rate": 0.0}, {"refine_anchor": -1.0}):
+                {"refine_steps": -1}, {"refine_misses": 5000}, {"short_pool_refine_misses": -1},
+                {"refine_rate": 0.0}, {"refine_anchor": -1.0}):
         with pytest.raises(ValueError):
             CheckedSamplerConfig(**bad)
 
@@ -190,7 +191,8 @@ def test_checked_sampler_says_when_no_proposal_agrees_with_the_view():
     result = sampler.complete(observation, num_samples=3, seed=0)
     assert result.accepted == 0 and "no proposal of 12 agrees with the view" in result.note
     refining = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
-                                                                     max_missed_fraction=0.0, refine_misses=5))
+                                                                     max_missed_fraction=0.0, refine_misses=5,
+                                                                     short_pool_refine_misses=5))
     assert "no proposal of 17 (5 of them refined) agrees" in refining.complete(observation, 3, seed=0).note
     assert result.occupancy.shape[0] == 3 and result.weights.sum() == pytest.approx(1.0)
     filling = CheckedSampler(tiny_completer(), CheckedSamplerConfig(proposals_per_sample=4, max_free_voxels=0,
@@ -256,13 +258,15 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
 
     assert badness(refined).mean() < 0.5 * badness(unrefined).mean()
     # Only where the pool falls short, when so configured: this view's pool is full under the default check and
-    # short under a check that accepts nothing.
-    lazy = CheckedSamplerConfig(refine_only_short_pools=True)
+    # short under a check that accepts nothing; where it is short, short_pool_refine_misses are refined.
+    lazy = CheckedSamplerConfig(refine_only_short_pools=True, refine_misses=10, short_pool_refine_misses=30)
     full = CheckedSampler(completer, lazy).complete(observation, num_samples=5, seed=0)
     assert full.accepted >= 5 and full.refine_s == 0 and full.accepted_by_source[REFINED] == 0
+    every_call = CheckedSampler(completer, replace(lazy, refine_only_short_pools=False)).complete(observation, 5, 0)
+    assert every_call.proposals == full.proposals + min(10, full.proposals - full.accepted)  # full: refine_misses
     strict = replace(lazy, max_missed_fraction=0.0, max_free_voxels=0)
     short = CheckedSampler(completer, strict).complete(observation, num_samples=5, seed=0)
-    assert short.refine_s > 0 and short.proposals == full.proposals + strict.refine_misses
+    assert short.refine_s > 0 and short.proposals == full.proposals + 30
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
@@ -299,7 +303,7 @@ def test_decoder_probabilities_in_block_order_are_the_grid_reordered():
 def test_checked_sampler_refines_its_nearest_misses_and_counts_them():
     observation = SlabObservation()
     config = CheckedSamplerConfig(proposals_per_sample=4, max_missed_fraction=0.3, max_free_voxels=10_000,
-                                  refine_misses=6, refine_steps=5, refine_rate=0.3)
+                                  refine_misses=6, short_pool_refine_misses=6, refine_steps=5, refine_rate=0.3)
     sampler = CheckedSampler(tiny_completer(), config)
     result = sampler.complete(observation, num_samples=3, seed=1)
     plain = CheckedSampler(tiny_completer(), replace(config, refine_steps=0)).complete(observation, 3, seed=1)

@@ -132,7 +132,8 @@ class PipelineConfig:
         check_delta: the checked sampler's depth tolerance (metres).
         proposals_per_sample: the checked sampler's proposals per requested sample.
         refine_steps: the checked sampler's gradient steps on its nearest misses' latents (0: none; each step
-            costs about three decodes of ``refine_misses`` (20) latents).
+            costs about three decodes of ``refine_misses`` (20) latents, ``short_pool_refine_misses`` (60) where
+            fewer proposals than requested pass the check).
         sampler_options: ``NAME=VALUE`` settings of the checked sampler's other parameters
             (:class:`pssnet_core.sampling.CheckedSamplerConfig`), applied last; for experiments from the command
             line (``--sampler-option``), the node sets none.

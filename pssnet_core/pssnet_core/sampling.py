@@ -22,7 +22,8 @@ behind a slit all narrower than the truth). The view itself says what is allowed
    delta) on more than ``max_missed_fraction`` of the observed voxels (silhouette voxels are where a sub-voxel
    shift decides, the grid's analogue of Alg. 1's unreliable pixels), or when it occupies more than
    ``max_free_voxels`` voxels lying more than ``delta`` in front of what the camera saw (it saw through them).
-3. **Refine** (``refine_steps`` > 0) the ``refine_misses`` least-violating rejected proposals: a few gradient
+3. **Refine** (``refine_steps`` > 0) the ``refine_misses`` least-violating rejected proposals (or
+   ``short_pool_refine_misses`` of them where fewer proposals than requested pass): a few gradient
    steps on the rest of each one's latent (its box code, which places the handle and the hidden extent, held
    fixed) towards occupying the observed voxels and leaving seen-through space empty, then check them again.
    Why: a proposal that reaches a hidden handle the posterior does not draw (a turned box) mostly fails on its
@@ -88,6 +89,9 @@ class CheckedSamplerConfig:
             from twenty nearest misses when nothing passes to twenty copies of one when one does (mugs behind a
             slit: arc coverage 0.47 -> 0.58, nothing worse measured; results/shipped_with_flow/README.md).
         refine_misses: least-violating rejected proposals refined per call.
+        short_pool_refine_misses: least-violating rejected proposals refined instead when fewer proposals than
+            requested samples pass the check (at most the rejected ones; the cost is paid where the pool falls
+            short: mugs behind a narrow slit, whose proposals mostly miss the few voxels seen through it).
         refine_steps: Adam steps of the refinement (0: no refinement).
         refine_rate: Adam's learning rate on the latent (prior units).
         refine_anchor: weight of the squared distance from the proposal's own latent (keeps the refined proposal
@@ -107,6 +111,7 @@ class CheckedSamplerConfig:
     max_proposals: int = 2000
     fill_with_nearest_misses: bool = True
     refine_misses: int = 20
+    short_pool_refine_misses: int = 60
     refine_steps: int = 3
     refine_rate: float = 0.2
     refine_anchor: float = 0.01
@@ -128,9 +133,11 @@ class CheckedSamplerConfig:
         if not (0.0 <= self.max_missed_fraction < 1.0 and 0.0 <= self.missed_margin < 1.0):
             raise ValueError(f"max_missed_fraction and missed_margin must lie in [0, 1), got "
                              f"{self.max_missed_fraction}, {self.missed_margin}")
-        if not (0 <= self.refine_misses <= self.max_proposals and 0 <= self.refine_steps <= 100):
-            raise ValueError(f"refine_misses must lie in [0, max_proposals] and refine_steps in [0, 100], got "
-                             f"{self.refine_misses}, {self.refine_steps}")
+        if not (0 <= self.refine_misses <= self.max_proposals and self.short_pool_refine_misses >= 0
+                and 0 <= self.refine_steps <= 100):
+            raise ValueError(f"refine_misses must lie in [0, max_proposals], short_pool_refine_misses be >= 0 and "
+                             f"refine_steps lie in [0, 100], got {self.refine_misses}, "
+                             f"{self.short_pool_refine_misses}, {self.refine_steps}")
         if not (math.isfinite(self.refine_rate) and 0 < self.refine_rate <= 10
                 and math.isfinite(self.refine_anchor) and self.refine_anchor >= 0):
             raise ValueError(f"refine_rate must lie in (0, 10] and refine_anchor be >= 0, got {self.refine_rate}, "
@@ -466,9 +473,10 @@ class CheckedSampler:
         source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
         ok = config.accepts(missed, free, source == 0)
         refine_s = 0.0
-        misses = np.argsort(np.where(ok, np.inf, check.badness(missed, free)), kind="stable")[:config.refine_misses]
-        misses = misses[~ok[misses]]
         short = int(ok.sum()) < num_samples
+        misses = np.argsort(np.where(ok, np.inf, check.badness(missed, free)), kind="stable")[
+            :config.short_pool_refine_misses if short else config.refine_misses]
+        misses = misses[~ok[misses]]
         if config.refine_steps and len(misses) and (short or not config.refine_only_short_pools):
             t_refine = time.perf_counter()
             refined = self.refine(latents[torch.as_tensor(misses, device=latents.device)], observed, check)

@@ -153,7 +153,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("proposals_per_sample", "checked sampler: proposals decoded per requested sample", 1, 100,
               field="proposals_per_sample"),
     ParamSpec("refine_steps", "checked sampler: gradient steps that move its nearest misses towards the view "
-              "(0 = none, cheaper: each step costs about three decodes of 20 latents)", 0, 100,
+              "(0 = none, cheaper: each step costs about three decodes of 20 latents, of 60 where fewer proposals "
+              "than the requested samples pass the check)", 0, 100,
               field="refine_steps"),
     ParamSpec("seed", "latent-noise seed: the same input gives the same completions; -1 = a fresh seed per "
               "call", -1, INT32_MAX, field="seed"),
