@@ -269,10 +269,18 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
     assert short.refine_s > 0 and short.proposals == full.proposals + 30
 
 
+@pytest.mark.parametrize("kernel", ["onednn", "addmm"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-def test_decoder_pullback_is_the_gradient_autograd_gives(dtype):
+def test_decoder_pullback_is_the_gradient_autograd_gives(dtype, kernel, monkeypatch):
     """Logits in block order equal to the decoder's, and the pullback of a gradient on them equal to autograd's
-    through the decoder; in bf16 within its rounding."""
+    through the decoder; in bf16 within its rounding. With oneDNN's packed weights where this CPU runs the dtype,
+    and with torch.addmm (forced here: the path of a GPU, or of bf16 on an AVX2-only CPU)."""
+    from pssnet_core.models import networks
+
+    if kernel == "onednn" and not networks.onednn_runs(dtype):
+        pytest.skip("oneDNN has no bf16 linear on this CPU (AVX2-only): the addmm case covers it")
+    if kernel == "addmm":
+        monkeypatch.setattr(networks, "onednn_runs", lambda dtype: False)
     model = tiny_model("pssnet", N).eval()
     z = torch.randn(3, model.latent_dim, generator=torch.Generator().manual_seed(2), requires_grad=True)
     full = model.decoder(z).reshape(3, -1)
@@ -286,6 +294,9 @@ def test_decoder_pullback_is_the_gradient_autograd_gives(dtype):
     torch.testing.assert_close(logits[:, order], full.detach(), **tolerance)
     torch.testing.assert_close(gradient, expected, **tolerance)
     assert all(p.grad is None for p in model.parameters())
+    packed = networks._PACKED[model.decoder]  # the kernel asked for ran
+    assert {p.onednn for key in (("forward", dtype), ("pullback", dtype)) for p in packed[key][1]} == {
+        kernel == "onednn"}
 
 
 def test_decoder_probabilities_in_block_order_are_the_grid_reordered():
