@@ -269,6 +269,47 @@ def test_refinement_moves_only_the_rest_of_the_latent_towards_the_view():
     assert short.refine_s > 0 and short.proposals == full.proposals + 30
 
 
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped default model")
+def test_novel_misses_are_those_least_like_the_accepted_spread():
+    """On a full pool (the shipped model, a rendered hidden-handle mug) the novel choice refines misses from the
+    3 x refine_misses least violating, farther from the accepted proposals' spread than the least violating ones;
+    on a short pool it refines the least violating, as without it."""
+    from pssnet_core.data.scenes import render_view
+    from pssnet_core.geometry import observe
+    from pssnet_core.pipeline import CompletionPipeline
+    from pssnet_core.shapes.procedural import make_shape
+
+    view = render_view(make_shape("mug", 2_000_001), yaw_deg=0.0, tilt_deg=30.0)
+    pipeline = CompletionPipeline.from_checkpoint(None, precision="fp32")
+    observation = observe(view.depth, view.mask, view.intrinsics, np.asarray(view.up), pipeline.grid_config())
+
+    def refined_latents(**options: object) -> tuple[torch.Tensor, object]:
+        sampler = CheckedSampler(pipeline.completer, CheckedSamplerConfig(refine_misses=6, **options))
+        chosen: list[torch.Tensor] = []
+        sampler.refine = lambda latents, *rest: (chosen.append(latents), CheckedSampler.refine(sampler, latents,
+                                                                                                *rest))[1]
+        result = sampler.complete(observation, num_samples=20, seed=0)
+        return chosen[0], result
+
+    nearest, plain = refined_latents(refine_novel_misses=False)
+    novel, result = refined_latents()  # the default
+    assert plain.accepted - plain.accepted_by_source[REFINED] >= 20  # a full pool
+    assert len(novel) == len(nearest) == 6 and not torch.equal(novel, nearest)
+    decode = pipeline.completer.model.decode_probabilities
+    with torch.inference_mode():
+        grids = [decode(z).reshape(len(z), -1).numpy() > 0.5 for z in (nearest, novel)]
+    accepted = result.occupancy.reshape(len(result.occupancy), -1)  # the returned spread of accepted proposals
+
+    def novelty(rows: np.ndarray) -> float:
+        both = BitRows.pack(np.concatenate([rows, accepted]))
+        return float(np.mean(np.min([both.jaccard_to(len(rows) + i)[:len(rows)] for i in range(len(accepted))],
+                                    axis=0)))
+
+    assert novelty(grids[1]) > novelty(grids[0])
+    strict = {"max_missed_fraction": 0.0, "max_free_voxels": 0, "short_pool_refine_misses": 6}
+    assert torch.equal(refined_latents(**strict)[0], refined_latents(refine_novel_misses=False, **strict)[0])
+
+
 @pytest.mark.parametrize("kernel", ["onednn", "addmm"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 def test_decoder_pullback_is_the_gradient_autograd_gives(dtype, kernel, monkeypatch):

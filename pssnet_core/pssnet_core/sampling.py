@@ -22,8 +22,9 @@ behind a slit all narrower than the truth). The view itself says what is allowed
    delta) on more than ``max_missed_fraction`` of the observed voxels (silhouette voxels are where a sub-voxel
    shift decides, the grid's analogue of Alg. 1's unreliable pixels), or when it occupies more than
    ``max_free_voxels`` voxels lying more than ``delta`` in front of what the camera saw (it saw through them).
-3. **Refine** (``refine_steps`` > 0) the ``refine_misses`` least-violating rejected proposals (or
-   ``short_pool_refine_misses`` of them where fewer proposals than requested pass): a few gradient
+3. **Refine** (``refine_steps`` > 0) ``refine_misses`` rejected proposals, those of the three times as many least
+   violating that differ most from the accepted ones (``refine_novel_misses``), or the ``short_pool_refine_misses``
+   least violating where fewer proposals than requested pass: a few gradient
    steps on the rest of each one's latent (its box code, which places the handle and the hidden extent, held
    fixed) towards occupying the observed voxels and leaving seen-through space empty, then check them again.
    Why: a proposal that reaches a hidden handle the posterior does not draw (a turned box) mostly fails on its
@@ -98,6 +99,10 @@ class CheckedSamplerConfig:
             what it was where the view says nothing).
         refine_only_short_pools: refine only when fewer proposals than requested samples pass the check (the
             cost is then paid where the pool falls short, not on every call).
+        refine_novel_misses: where the pool is full, refine the ``refine_misses`` of the 3 x ``refine_misses``
+            least-violating rejected proposals farthest (Jaccard) from the accepted ones' farthest-point spread,
+            instead of the least violating: a miss like an accepted proposal adds nothing when refined (hidden
+            arc coverage out of family 0.79 -> 0.82, results/short_pools/README.md).
     """
 
     proposals_per_sample: int = 10
@@ -116,6 +121,7 @@ class CheckedSamplerConfig:
     refine_rate: float = 0.2
     refine_anchor: float = 0.01
     refine_only_short_pools: bool = False
+    refine_novel_misses: bool = True
 
     def __post_init__(self) -> None:
         if not 1 <= self.proposals_per_sample <= 100:
@@ -474,9 +480,16 @@ class CheckedSampler:
         ok = config.accepts(missed, free, source == 0)
         refine_s = 0.0
         short = int(ok.sum()) < num_samples
+        count = config.short_pool_refine_misses if short else config.refine_misses
         misses = np.argsort(np.where(ok, np.inf, check.badness(missed, free)), kind="stable")[
-            :config.short_pool_refine_misses if short else config.refine_misses]
+            :count * (3 if config.refine_novel_misses and not short else 1)]
         misses = misses[~ok[misses]]
+        if len(misses) > count:  # the least violating third of them that differ most from the accepted spread
+            accepted_rows = np.flatnonzero(ok)
+            spread, _ = farthest_point_selection(packed.subset(accepted_rows), int(num_samples))
+            both = packed.subset(np.concatenate([misses, accepted_rows[spread]]))
+            novelty = np.min([both.jaccard_to(len(misses) + i)[:len(misses)] for i in range(len(spread))], axis=0)
+            misses = misses[np.sort(np.argsort(-novelty, kind="stable")[:count])]
         if config.refine_steps and len(misses) and (short or not config.refine_only_short_pools):
             t_refine = time.perf_counter()
             refined = self.refine(latents[torch.as_tensor(misses, device=latents.device)], observed, check)
