@@ -102,7 +102,7 @@ class CheckedSamplerConfig:
         refine_novel_misses: where the pool is full, refine the ``refine_misses`` of the 3 x ``refine_misses``
             least-violating rejected proposals farthest (Jaccard) from the accepted ones' farthest-point spread,
             instead of the least violating: a miss like an accepted proposal adds nothing when refined (hidden
-            arc coverage out of family 0.79 -> 0.82, results/short_pools/README.md).
+            arc coverage out of family 0.79 -> 0.82, results/novel_misses/README.md).
     """
 
     proposals_per_sample: int = 10
@@ -470,10 +470,11 @@ class CheckedSampler:
         t1 = time.perf_counter()
         config = self.sampler_config
         block_order = self.model.decoder.block_order()
+        order = block_order.numpy()
         check = GridCheck.prepare(known_occupied, known_free, pose, config.delta,
-                                  getattr(observation, "views", ())).reordered(block_order.numpy())
-        observed = np.zeros(len(block_order), bool)
-        observed[block_order.numpy()] = known_occupied.reshape(-1)
+                                  getattr(observation, "views", ())).reordered(order)
+        observed = np.zeros(len(order), bool)
+        observed[order] = known_occupied.reshape(-1)
         packed = BitRows.pack(occupancy)
         missed, free = check.violations(occupancy, packed)
         source = np.repeat(np.arange(len(SOURCES)), [counts[s] for s in SOURCES])
@@ -481,10 +482,11 @@ class CheckedSampler:
         refine_s = 0.0
         short = int(ok.sum()) < num_samples
         count = config.short_pool_refine_misses if short else config.refine_misses
+        novel = config.refine_novel_misses and not short
         misses = np.argsort(np.where(ok, np.inf, check.badness(missed, free)), kind="stable")[
-            :count * (3 if config.refine_novel_misses and not short else 1)]
+            :count * (3 if novel else 1)]
         misses = misses[~ok[misses]]
-        if len(misses) > count:  # the least violating third of them that differ most from the accepted spread
+        if novel and len(misses) > count:  # of the 3 x count least violating, the count least like the accepted
             accepted_rows = np.flatnonzero(ok)
             spread, _ = farthest_point_selection(packed.subset(accepted_rows), int(num_samples))
             both = packed.subset(np.concatenate([misses, accepted_rows[spread]]))
