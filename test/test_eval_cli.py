@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +176,13 @@ def test_evaluate_scores_each_model_with_both_samplers(tiny_data, tiny_checkpoin
                  "--check-delta", "0.02"]) == 0
     rows = list(csv.DictReader(open(out / "per_observation.csv")))
     assert {r["method"] for r in rows} == {"vae", "vae_checked"}
+    # methods.json: what made each method's samples, the checked sampler's every parameter included.
+    methods = json.loads((out / "methods.json").read_text())
+    assert methods["code"] and methods["cpu"]
+    assert methods["methods"]["vae"]["sampler"] == "posterior" and "checked_sampler" not in methods["methods"]["vae"]
+    checked = methods["methods"]["vae_checked"]
+    assert checked["sampler"] == "checked" and checked["checkpoint"].endswith("vae.pt")
+    assert checked["checked_sampler"] == json.loads(json.dumps(asdict(CheckedSamplerConfig(delta=0.02))))
     recgan = save_checkpoint(tmp_path / "r.pt", build_model(default_config("recgan", grid_size=16,
                                                                           channels=[4, 8, 8, 8], bottleneck_dim=8,
                                                                           disc_channels=[4, 8])))

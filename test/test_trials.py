@@ -309,6 +309,12 @@ def test_a_short_run_writes_records_summary_and_filmstrip_and_resumes(factory, s
     # Run again: nothing new to do, the records stay as they were.
     assert len(run_trials(config, strategist, tmp_path, progress=False)) == len(records)
     assert len((tmp_path / "records.jsonl").read_text().splitlines()) == len(records)
+    # Each invocation says what made it: the code, the machine, every checked-sampler parameter.
+    invocations = [json.loads(line) for line in (tmp_path / "provenance.jsonl").read_text().splitlines()]
+    assert [i["records_before"] for i in invocations] == [0, len(records)]
+    assert invocations[0]["checked_sampler"] == json.loads(json.dumps(asdict(strategist.sampler_config)))
+    assert invocations[0]["code"]
+    assert invocations[0]["cpu"] and invocations[0]["sampler"] == "checked"
     # A run committed gzipped (results/) reads back the same.
     packed = tmp_path / "packed"
     packed.mkdir()

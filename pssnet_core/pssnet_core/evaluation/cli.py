@@ -23,7 +23,7 @@ from pssnet_core.evaluation.evaluate import (
     load_test_sets,
     run_evaluation,
 )
-from pssnet_core.evaluation.experiment import Completer, Report, write_report
+from pssnet_core.evaluation.experiment import Completer, Json, Report, write_report
 from pssnet_core.evaluation.observation_model import ObservationModelConfig, ObservationModelError
 from pssnet_core.evaluation.plausible import PlausibleSetError
 from pssnet_core.evaluation.testsets import PAPER_TEST_SETS, TEST_SETS
@@ -321,8 +321,13 @@ def load_completers(models: list[str], spec: str, device: str, threads: int | No
     return out
 
 
-def _write(report: Report, out: str) -> dict[str, Path]:
-    """Writes the report into ``out``, prints its Markdown and the files written."""
+def _write(report: Report, out: str, completers: dict[str, Completer]) -> dict[str, Path]:
+    """Writes the report into ``out`` with ``methods.json`` (the code version, the machine and each method's
+    settings: pssnet_core.provenance), prints its Markdown and the files written."""
+    from pssnet_core.provenance import invocation, method_settings
+
+    report = {**report, "methods": Json("methods.json", invocation(
+        methods={name: method_settings(c) for name, c in completers.items()}), indent=1, strict=False)}
     files = write_report(report, out)
     print(files["markdown"].read_text())
     print("wrote " + ", ".join(str(p) for p in files.values()))
@@ -366,7 +371,7 @@ def _evaluate_command(args: argparse.Namespace) -> int:
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
                                  args.check_delta, args.model_box_temperatures, tuple(args.sampler_option))
     command = " ".join(sys.argv[2:]) if sys.argv[1:2] == ["evaluate"] else ""
-    _write(evaluation_report(run_evaluation(config, completers), command), config.out)
+    _write(evaluation_report(run_evaluation(config, completers), command), config.out, completers)
     return 0
 
 
@@ -387,7 +392,7 @@ def _handles_command(args: argparse.Namespace) -> int:
 
     config = handles_config(args)
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads)
-    _write(handles_report(run_handles(config, completers)), config.out)
+    _write(handles_report(run_handles(config, completers)), config.out, completers)
     return 0
 
 
@@ -418,7 +423,7 @@ def _ambiguity_command(args: argparse.Namespace) -> int:
     config = ambiguity_config(args)  # parameters checked before the models load
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads, args.samplers,
                                  args.check_delta, sampler_options=tuple(args.sampler_option))
-    _write(ambiguity_report(run_ambiguity(config, completers)), config.out)
+    _write(ambiguity_report(run_ambiguity(config, completers)), config.out, completers)
     return 0
 
 
@@ -443,7 +448,7 @@ def _memorisation_command(args: argparse.Namespace) -> int:
 
     config = memorisation_config(args)
     completers = load_completers(_models(args.models), args.checkpoints, args.device, args.threads)
-    _write(memorisation_report(run_memorisation(config, completers)), config.out)
+    _write(memorisation_report(run_memorisation(config, completers)), config.out, completers)
     return 0
 
 

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pssnet_core.grasps import GraspConfig, GripperConfig
+from pssnet_core.provenance import invocation
 from pssnet_core.trials import DEFAULT_STRATEGIES, LOOK_MIN_SEPARABILITY, SCENARIOS
 from pssnet_core.trials.collision import Faithfulness
 from pssnet_core.trials.physics import OUTCOMES, PhysicsConfig, PhysicsScene, TrialOutcome, build_model, run_trial
@@ -459,6 +460,9 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
     records_path = out / "records.jsonl"
     records = read_records(records_path)
     done = {(r.scenario, r.index, r.strategy) for r in records}
+    with (out / "provenance.jsonl").open("a") as log:  # one line per invocation: a resumed run says what it mixed
+        log.write(json.dumps(invocation(records_before=len(records), sampler=config.sampler,
+                                        checked_sampler=asdict(strategist.sampler_config))) + "\n")
     factory = SceneFactory(config.scenario, config.grasps.gripper)
     bar = tqdm(total=len(config.scenarios) * config.trials * len(config.strategies), unit="trial",
                disable=not progress, file=sys.stderr)
