@@ -22,15 +22,21 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 
 
 def code_version() -> str:
-    """``git describe --always --dirty`` of the checkout this package runs from, or the installed package's version
-    where it is not a git work tree (a wheel, a colcon install)."""
-    try:
-        described = subprocess.run(["git", "-C", str(PACKAGE_DIR), "describe", "--always", "--dirty", "--abbrev=12"],
-                                   capture_output=True, text=True, timeout=10, check=False)
-    except (OSError, subprocess.TimeoutExpired):
-        described = None
-    if described is not None and described.returncode == 0 and described.stdout.strip():
-        return f"git {described.stdout.strip()}"
+    """``git <commit>`` of the checkout this package runs from, ``-dirty`` when the package's own files differ from
+    it (results and notes edited beside a run do not count), or the installed package's version where it is not a
+    git work tree (a wheel, a colcon install)."""
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(PACKAGE_DIR), *args], capture_output=True, text=True, timeout=10,
+                                  check=False)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "--short=12", "HEAD")
+    if commit:
+        changed = git("status", "--porcelain", "--untracked-files=no", "--", ".")
+        return f"git {commit}" + ("-dirty" if changed else "")
     try:
         return f"pssnet_core {metadata.version('pssnet_core')}"
     except metadata.PackageNotFoundError:
