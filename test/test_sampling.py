@@ -89,6 +89,9 @@ def test_packed_jaccard_and_farthest_point_selection_with_cell_weights():
     a, b = grids_array[0], grids_array[12]
     expected = 1.0 - (a & b).sum() / (a | b).sum()
     assert packed.jaccard_to(0)[12] == pytest.approx(expected) and packed.jaccard_to(0)[0] == 0.0
+    others = BitRows.pack(grids_array[[0, 12]])  # each grid's distance to the nearer of two
+    expected_nearest = np.minimum(packed.jaccard_to(0), packed.jaccard_to(12))
+    np.testing.assert_allclose(packed.nearest_jaccard(others), expected_nearest)
     picked, cell = farthest_point_selection(packed, 3)
     assert sorted(np.asarray(labels)[picked].tolist()) == [0, 1, 2]  # one from each cluster
     counts = np.bincount(cell, minlength=3)
@@ -301,9 +304,7 @@ def test_novel_misses_are_those_least_like_the_accepted_spread():
     accepted = result.occupancy.reshape(len(result.occupancy), -1)  # the returned spread of accepted proposals
 
     def novelty(rows: np.ndarray) -> float:
-        both = BitRows.pack(np.concatenate([rows, accepted]))
-        return float(np.mean(np.min([both.jaccard_to(len(rows) + i)[:len(rows)] for i in range(len(accepted))],
-                                    axis=0)))
+        return float(np.mean(BitRows.pack(rows).nearest_jaccard(BitRows.pack(accepted))))
 
     assert novelty(grids[1]) > novelty(grids[0])
     strict = {"max_missed_fraction": 0.0, "max_free_voxels": 0, "short_pool_refine_misses": 6}

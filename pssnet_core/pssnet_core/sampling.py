@@ -489,8 +489,7 @@ class CheckedSampler:
         if novel and len(misses) > count:  # of the 3 x count least violating, the count least like the accepted
             accepted_rows = np.flatnonzero(ok)
             spread, _ = farthest_point_selection(packed.subset(accepted_rows), int(num_samples))
-            both = packed.subset(np.concatenate([misses, accepted_rows[spread]]))
-            novelty = np.min([both.jaccard_to(len(misses) + i)[:len(misses)] for i in range(len(spread))], axis=0)
+            novelty = packed.subset(misses).nearest_jaccard(packed.subset(accepted_rows[spread]))
             misses = misses[np.sort(np.argsort(-novelty, kind="stable")[:count])]
         if config.refine_steps and len(misses) and (short or not config.refine_only_short_pools):
             t_refine = time.perf_counter()

@@ -84,6 +84,11 @@ class BitRows:
         union = self.sizes + self.sizes[index] - inter
         return np.where(union > 0, 1.0 - inter / np.maximum(union, 1), 0.0)
 
+    def nearest_jaccard(self, others: BitRows) -> np.ndarray:
+        """Each grid's Jaccard distance to the nearest of ``others`` (at least one)."""
+        both = BitRows(np.concatenate([self.words, others.words]))
+        return np.min([both.jaccard_to(len(self) + i)[:len(self)] for i in range(len(others))], axis=0)
+
 
 def farthest_point_selection(grids: BitRows, count: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Picks ``count`` grids that spread out (greedy farthest point on Jaccard distance, ties to the lowest index).

@@ -462,7 +462,8 @@ def run_trials(config: TrialsConfig, strategist: Strategist, out: Path, progress
     done = {(r.scenario, r.index, r.strategy) for r in records}
     with (out / "provenance.jsonl").open("a") as log:  # one line per invocation: a resumed run says what it mixed
         log.write(json.dumps(invocation(records_before=len(records), sampler=config.sampler,
-                                        checked_sampler=asdict(strategist.sampler_config))) + "\n")
+                                        checked_sampler=asdict(strategist.sampler_config)
+                                        if config.sampler == "checked" else None)) + "\n")
     factory = SceneFactory(config.scenario, config.grasps.gripper)
     bar = tqdm(total=len(config.scenarios) * config.trials * len(config.strategies), unit="trial",
                disable=not progress, file=sys.stderr)
