@@ -3,12 +3,13 @@ carried the table (``pssnet_core.trials.run.calibration_lines``, the same table)
 trials with a grasp binned by the grasp's score and by its weight share (recorded in the notes since stop 47), with
 how many lifted the object and how the rest failed.
 
-    .venv/bin/python scripts/grasp_calibration.py results/grasp_trials/weight_shares/mug [RUN ...]
+    .venv/bin/python scripts/grasp_calibration.py results/grasp_trials/weight_shares/mug [RUN ...] [--pool]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from pssnet_core.trials.run import calibration_lines, read_run_records
@@ -17,15 +18,22 @@ from pssnet_core.trials.run import calibration_lines, read_run_records
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", type=Path, help="grasp-trials output directories")
+    parser.add_argument("--pool", action="store_true", help="one table over all the runs' records")
     args = parser.parse_args()
-    for run in args.runs:
-        records = read_run_records(run)
+    groups = [args.runs] if args.pool else [[run] for run in args.runs]
+    for runs in groups:
+        records = [record for run in runs for record in read_run_records(run)]
         if not records:
-            parser.error(f"{run}: no records")
-        print(f"\n{run}")
+            parser.error(f"{', '.join(map(str, runs))}: no records")
+        # The hand as recorded (runs before stop 44 wrote no settings.json: unknown). Hands unknown or differing: no
+        # full-opening row.
+        openings = {json.loads((run / "settings.json").read_text())["grasps"]["gripper"]["max_opening"]
+                    if (run / "settings.json").exists() else None for run in runs}
+        max_opening = openings.pop() if len(openings) == 1 else None
+        print(f"\n{', '.join(map(str, runs))}")
         for scenario in sorted({r.scenario for r in records}):
             for strategy in sorted({r.strategy for r in records if r.scenario == scenario}):
-                print("\n" + "\n".join(calibration_lines(records, scenario, strategy)))
+                print("\n" + "\n".join(calibration_lines(records, scenario, strategy, max_opening)))
 
 
 if __name__ == "__main__":

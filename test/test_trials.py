@@ -386,10 +386,20 @@ def test_the_calibration_table_bins_the_chosen_grasps_by_score_and_weight_share(
     # The weight-share rows count only the records that carry one (record 4 does not).
     assert rows["weight share 0.9-1"] == "| weight share 0.9-1 | 3 | 2 (67 %) | 1 | 0 | 0 |"
     assert rows["weight share 0.5-0.7"] == "| weight share 0.5-0.7 | 1 | 0 (0 %) | 0 | 0 | 1 |"
-    assert len(lines) == 2 + 4 + 4
-    # Runs recorded before the weight share: score rows only.
+    # Every chosen grasp here is a side grasp; no kind row for kinds never chosen.
+    assert rows["kind side"] == "| kind side | 5 | 2 (40 %) | 1 | 1 | 1 |"
+    assert len(lines) == 2 + 4 + 4 + 1
+    # Runs recorded before the weight share: score and kind rows only.
     old = [replace(r, notes={}) for r in records]
-    assert len(calibration_lines(old, "mug_hidden_handle", "pssnet")) == 2 + 4
+    assert len(calibration_lines(old, "mug_hidden_handle", "pssnet")) == 2 + 4 + 1
+    # With the hand's opening: the grasps opened to within 2 mm of it (a 7.9 cm pinch for an 8 cm hand).
+    wide = [*records, replace(records[0], index=6, kind="top", width=0.079, outcome="slipped")]
+    lines = calibration_lines(wide, "mug_hidden_handle", "pssnet", max_opening=0.08)
+    # Kinds in KIND_NAMES' order, then the full-opening row.
+    assert [line.split(" | ")[0] for line in lines[-3:]] == ["| kind top", "| kind side", "| opened to within 2 mm of "
+                                                                                       "the hand's 8 cm"]
+    assert lines[-3] == "| kind top | 1 | 0 (0 %) | 0 | 0 | 1 |"
+    assert lines[-1] == "| opened to within 2 mm of the hand's 8 cm | 1 | 0 (0 %) | 0 | 0 | 1 |"
 
 
 def test_wilson_interval():

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pssnet_core.grasps import GraspConfig, GripperConfig
+from pssnet_core.grasps import KIND_NAMES, GraspConfig, GripperConfig
 from pssnet_core.provenance import invocation
 from pssnet_core.trials import DEFAULT_STRATEGIES, LOOK_MIN_SEPARABILITY, SCENARIOS
 from pssnet_core.trials.collision import Faithfulness
@@ -253,16 +253,28 @@ def markdown_table(summaries: list[Summary]) -> str:
 
 #: Bin edges of :func:`calibration_lines` (the last bin includes 1).
 CALIBRATION_BINS = (0.0, 0.5, 0.7, 0.9, 1.0)
+#: :func:`calibration_lines`' full-opening row: grasps opened to within this of the hand's maximum (m).
+FULL_OPENING_MARGIN = 0.002
 
 
-def calibration_lines(records: list[TrialRecord], scenario: str, strategy: str) -> list[str]:
+def calibration_lines(records: list[TrialRecord], scenario: str, strategy: str,
+                      max_opening: float | None = None) -> list[str]:
     """A markdown table of how the chosen grasp's score and weight share foretold the outcome (one strategy in one
     scenario): its trials with a grasp binned by the grasp's score, then by its weight share (``notes.weight_share``,
-    recorded since stop 47; those rows only where recorded), with how many lifted the object and how the rest failed."""
+    recorded since stop 47; those rows only where recorded), then by the grasp's kind (top, side, tilted), with how
+    many lifted the object and how the rest failed. With ``max_opening`` (m, the hand's), one more row: the grasps
+    opened to within :data:`FULL_OPENING_MARGIN` of it (a pinch of a body about as wide as the hand)."""
     chosen = [r for r in records if r.scenario == scenario and r.strategy == strategy and r.outcome != "no_grasp"]
     failures = tuple(c for c in CAUSES if c != "no_grasp")
     lines = [f"| {scenario}, {strategy}: bin | grasps | lifted | " + " | ".join(failures) + " |",
              "|---|---:|---:|" + "---:|" * len(failures)]
+
+    def row(label: str, cell: list[TrialRecord]) -> str:
+        lifted = sum(r.success for r in cell)
+        rate = f" ({100 * lifted / len(cell):.0f} %)" if cell else ""
+        return (f"| {label} | {len(cell)} | {lifted}{rate} | "
+                + " | ".join(str(sum(r.outcome == c for r in cell)) for c in failures) + " |")
+
     shared = [r for r in chosen if "weight_share" in r.notes]
     for label, rated, value in (("score", chosen, lambda r: r.score),
                                 ("weight share", shared, lambda r: float(r.notes["weight_share"]))):
@@ -270,11 +282,13 @@ def calibration_lines(records: list[TrialRecord], scenario: str, strategy: str) 
             continue
         for lo, hi in zip(CALIBRATION_BINS[:-1], CALIBRATION_BINS[1:], strict=True):
             top = hi == CALIBRATION_BINS[-1]
-            cell = [r for r in rated if lo <= value(r) < hi or (top and value(r) == hi)]
-            lifted = sum(r.success for r in cell)
-            rate = f" ({100 * lifted / len(cell):.0f} %)" if cell else ""
-            lines.append(f"| {label} {lo:g}-{hi:g} | {len(cell)} | {lifted}{rate} | "
-                         + " | ".join(str(sum(r.outcome == c for r in cell)) for c in failures) + " |")
+            lines.append(row(f"{label} {lo:g}-{hi:g}", [r for r in rated if lo <= value(r) < hi
+                                                          or (top and value(r) == hi)]))
+    for kind in [k for k in KIND_NAMES if any(r.kind == k for r in chosen)]:
+        lines.append(row(f"kind {kind}", [r for r in chosen if r.kind == kind]))
+    if max_opening is not None and chosen:
+        lines.append(row(f"opened to within {1000 * FULL_OPENING_MARGIN:g} mm of the hand's {100 * max_opening:g} cm",
+                         [r for r in chosen if r.width >= max_opening - FULL_OPENING_MARGIN]))
     return lines
 
 
@@ -556,7 +570,7 @@ def write_summary(path: Path, config: TrialsConfig, records: list[TrialRecord],
             "What the chosen grasp's score (the share of the strategy's shapes it holds for) and weight share (the "
             "share of the weight its pads hold, over those shapes) said of the outcome, scenes with a grasp:", "",
             *[line for scenario in config.scenarios for strategy in config.strategies
-              for line in (*calibration_lines(records, scenario, strategy), "")],
+              for line in (*calibration_lines(records, scenario, strategy, config.grasps.gripper.max_opening), "")],
             f"Collision shapes (CoACD, threshold {config.scenario.decomposition.threshold}) of the objects used:", "",
             *faithfulness_lines(faithfulness),
             f"- left out of the object pools for an unfaithful collision shape (volume off by more than "
