@@ -1,7 +1,9 @@
-"""How the chosen grasp's score and weight share foretell its outcome, for runs made before the trials' summary
-carried the table (``pssnet_core.trials.run.calibration_lines``, the same table): per scenario and strategy, the
-trials with a grasp binned by the grasp's score and by its weight share (recorded in the notes since stop 47), with
-how many lifted the object and how the rest failed.
+"""How the chosen grasp's score, weight share and kind foretell its outcome, for runs made before the trials'
+summary carried the table (``pssnet_core.trials.run.calibration_lines``, the same table), or over several runs at
+once: per scenario and strategy, the trials with a grasp binned by the grasp's score, by its weight share (recorded in
+the notes since stop 47) and by its kind, and (where the runs recorded one hand) the grasps opened to within 2 mm of
+its full opening, with how many lifted the object and how the rest failed. With ``--pool`` the runs' records make one
+table: pass runs of different scene sets (seeds), as nothing here checks that a scene is not counted twice.
 
     .venv/bin/python scripts/grasp_calibration.py results/grasp_trials/weight_shares/mug [RUN ...] [--pool]
 """
